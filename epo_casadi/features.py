@@ -1,0 +1,434 @@
+"""Energy features: residual vectors ``c(.)`` of one agent and ``d(.)`` of a pair.
+
+A feature turns trajectories into a residual vector; the game multiplies it by one
+scalar weight parameter and adds ``1/2 ||w * c||^2`` to the energy (paper Eq. (7)).
+Shapes and time indices follow the contract in :mod:`epo_casadi.game`: an agent's
+trajectory is ``X`` (``nx x (K+1)``, column ``k`` is ``x_k``; ``x_0`` is the
+initial state) and ``U`` (``nu x K``, column ``k`` is ``u_k``).
+
+Own features (:data:`OWN_FEATURES`, App. F.3 of the paper):
+
+======================  ===========================================  ===============
+kind                    residual                                     time steps
+======================  ===========================================  ===============
+``goal``                ``p(x_K) - g`` (terminal position to goal)    ``K``
+``velocity``            velocity of ``x_k``                          ``1..K``
+``acceleration``        acceleration control ``u_k``                 ``0..K-1``
+``jerk``                ``(a_{k+1} - a_k) / dt``                     ``0..K-2``
+``turn_rate``           turn rate at ``(x_k, u_k)``                  ``0..K-1``
+``turn_acceleration``   ``(w_{k+1} - w_k) / dt``                     ``0..K-2``
+``reference_velocity``  ``speed(x_k) - v_ref``                       ``1..K``
+``path``                distance of ``p(x_k)`` to a polyline         ``1..K``
+``velocity_bound``      ``max(0, s - hi) + max(0, lo - s)``          ``1..K``
+``acceleration_bound``  same on the acceleration                     ``0..K-1``
+``turn_rate_bound``     same on the turn rate                        ``0..K-1``
+======================  ===========================================  ===============
+
+Pair feature (:data:`PAIR_FEATURES`): ``collision``,
+``max(0, r_i + r_j - dist(p_i(x_k), p_j(x_k)))`` every ``every``-th step
+``k = every, 2 every, ..., <= K`` with the smooth distance
+``sqrt(dx^2 + dy^2 + eps)`` so derivatives stay finite when two centres coincide.
+It is symmetric in ``(i, j)``, the condition under which the potential's
+minimizer is an open-loop Nash equilibrium (Theorem 1).
+
+Soft bounds use ``max(0, g)``; the residual has a kink where the bound becomes
+active, the energy ``1/2 max(0, g)^2`` is continuously differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+import casadi as ca
+
+from .dynamics import Dynamics
+from .errors import SpecError
+
+__all__ = [
+    "AgentContext",
+    "Feature",
+    "PairFeature",
+    "Goal",
+    "Velocity",
+    "Acceleration",
+    "Jerk",
+    "TurnRate",
+    "TurnAcceleration",
+    "ReferenceVelocity",
+    "Path",
+    "VelocityBound",
+    "AccelerationBound",
+    "TurnRateBound",
+    "Collision",
+    "OWN_FEATURES",
+    "PAIR_FEATURES",
+    "make_feature",
+    "make_pair_feature",
+    "smooth_distance",
+]
+
+DIST_EPS = 1e-9  # inside the square root of the smooth distance (m^2)
+
+
+@dataclass
+class AgentContext:
+    """What a feature sees of one agent: symbolic trajectory and reference parameters."""
+
+    dynamics: Dynamics
+    X: Any  # nx x (K+1)
+    U: Any  # nu x K
+    dt: float
+    refs: dict[str, Any]  # reference parameter name -> SX column (goal, vref, path)
+    radius: float = 0.0
+
+    @property
+    def K(self) -> int:
+        return self.U.shape[1]
+
+
+def smooth_distance(p, q):
+    d = p - q
+    return ca.sqrt(ca.sumsqr(d) + DIST_EPS)
+
+
+def _bound(q, lower: float, upper: float):
+    return ca.fmax(0, q - upper) + ca.fmax(0, lower - q)
+
+
+@dataclass(frozen=True)
+class Feature:
+    """Base of own features. ``label`` names the weight (defaults to the kind)."""
+
+    kind: ClassVar[str] = ""
+    label: str | None = None
+    weight: float = 1.0  # default value of this feature's weight parameter
+
+    @property
+    def key(self) -> str:
+        return self.label or self.kind
+
+    def refs(self) -> dict[str, int]:
+        """Reference parameters this feature reads: name -> size."""
+        return {}
+
+    def steps(self, K: int) -> list[int]:
+        raise NotImplementedError
+
+    def residual(self, ctx: AgentContext):
+        raise NotImplementedError
+
+    def check(self, dynamics: Dynamics) -> None:
+        """Raise :class:`SpecError` when the feature does not apply to ``dynamics``."""
+        w = self.weight
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
+            raise SpecError(f"{self.key}.weight", f"expected a finite number, got {w!r}")
+        x = ca.SX.sym("x", dynamics.nx, 3)
+        u = ca.SX.sym("u", dynamics.nu, 2)
+        refs = {n: ca.SX.sym(n, s) for n, s in self.refs().items()}
+        self.residual(AgentContext(dynamics, x, u, 0.1, refs))
+
+    def to_dict(self) -> dict:
+        d = {"type": self.kind}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "label" and v is None:
+                continue
+            d[f.name] = v
+        return d
+
+
+def _cols(fn, ks):
+    return ca.vertcat(*[fn(k) for k in ks]) if ks else ca.SX(0, 1)
+
+
+@dataclass(frozen=True)
+class Goal(Feature):
+    kind: ClassVar[str] = "goal"
+
+    def refs(self):
+        return {"goal": 2}
+
+    def steps(self, K):
+        return [K]
+
+    def residual(self, ctx):
+        return ctx.dynamics.position(ctx.X[:, ctx.K]) - ctx.refs["goal"]
+
+
+@dataclass(frozen=True)
+class Velocity(Feature):
+    kind: ClassVar[str] = "velocity"
+
+    def steps(self, K):
+        return list(range(1, K + 1))
+
+    def residual(self, ctx):
+        return _cols(lambda k: ctx.dynamics.velocity(ctx.X[:, k]), self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class Acceleration(Feature):
+    kind: ClassVar[str] = "acceleration"
+
+    def steps(self, K):
+        return list(range(K))
+
+    def residual(self, ctx):
+        return _cols(lambda k: ctx.dynamics.acceleration(ctx.U[:, k]), self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class Jerk(Feature):
+    kind: ClassVar[str] = "jerk"
+
+    def steps(self, K):
+        return list(range(K - 1))
+
+    def residual(self, ctx):
+        acc = ctx.dynamics.acceleration
+        return _cols(lambda k: (acc(ctx.U[:, k + 1]) - acc(ctx.U[:, k])) / ctx.dt, self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class TurnRate(Feature):
+    kind: ClassVar[str] = "turn_rate"
+
+    def steps(self, K):
+        return list(range(K))
+
+    def residual(self, ctx):
+        tr = ctx.dynamics.turn_rate
+        return _cols(lambda k: tr(ctx.X[:, k], ctx.U[:, k]), self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class TurnAcceleration(Feature):
+    kind: ClassVar[str] = "turn_acceleration"
+
+    def steps(self, K):
+        return list(range(K - 1))
+
+    def residual(self, ctx):
+        tr = ctx.dynamics.turn_rate
+        X, U = ctx.X, ctx.U
+        return _cols(
+            lambda k: (tr(X[:, k + 1], U[:, k + 1]) - tr(X[:, k], U[:, k])) / ctx.dt,
+            self.steps(ctx.K),
+        )
+
+
+@dataclass(frozen=True)
+class ReferenceVelocity(Feature):
+    kind: ClassVar[str] = "reference_velocity"
+
+    def refs(self):
+        return {"vref": 1}
+
+    def steps(self, K):
+        return list(range(1, K + 1))
+
+    def residual(self, ctx):
+        return _cols(lambda k: ctx.dynamics.speed(ctx.X[:, k]) - ctx.refs["vref"], self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class Path(Feature):
+    """Distance of the position to a polyline of ``points`` vertices (a parameter).
+
+    The polyline parameter ``path`` holds ``(x_0, y_0, x_1, y_1, ...)``. The
+    distance to the nearest segment uses a clamped projection and the smooth
+    distance; the minimum over segments is continuous and differentiable almost
+    everywhere (where the nearest segment does not switch).
+    """
+
+    kind: ClassVar[str] = "path"
+    points: int | None = None  # None: the number of vertices of the agent's path
+
+    def __post_init__(self):
+        if self.points is not None and not (isinstance(self.points, int) and self.points >= 2):
+            raise SpecError("path.points", f"a polyline needs an integer >= 2 points, got {self.points!r}")
+
+    def refs(self):
+        return {"path": 2 * self.points}
+
+    def steps(self, K):
+        return list(range(1, K + 1))
+
+    def residual(self, ctx):
+        P = ca.reshape(ctx.refs["path"], 2, self.points)
+
+        def dist(k):
+            q = ctx.dynamics.position(ctx.X[:, k])
+            ds = []
+            for s in range(self.points - 1):
+                a, b = P[:, s], P[:, s + 1]
+                ab = b - a
+                t = ca.dot(q - a, ab) / (ca.sumsqr(ab) + 1e-12)
+                t = ca.fmin(1, ca.fmax(0, t))
+                ds.append(smooth_distance(q, a + t * ab))
+            out = ds[0]
+            for d in ds[1:]:
+                out = ca.fmin(out, d)
+            return out
+
+        return _cols(dist, self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class _BoundFeature(Feature):
+    lower: float = -math.inf
+    upper: float = math.inf
+
+    def __post_init__(self):
+        lo, hi = float(self.lower), float(self.upper)
+        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+            raise SpecError(f"{self.kind}.lower/upper", f"need lower < upper, got {lo} and {hi}")
+        if math.isinf(lo) and math.isinf(hi):
+            raise SpecError(f"{self.kind}", "give at least one finite bound (lower or upper)")
+
+    def _q(self, ctx, k):
+        raise NotImplementedError
+
+    def residual(self, ctx):
+        lo, hi = float(self.lower), float(self.upper)
+        lo = -1e300 if math.isinf(lo) else lo
+        hi = 1e300 if math.isinf(hi) else hi
+        return _cols(lambda k: _bound(self._q(ctx, k), lo, hi), self.steps(ctx.K))
+
+
+@dataclass(frozen=True)
+class VelocityBound(_BoundFeature):
+    kind: ClassVar[str] = "velocity_bound"
+
+    def steps(self, K):
+        return list(range(1, K + 1))
+
+    def _q(self, ctx, k):
+        return ctx.dynamics.speed(ctx.X[:, k])
+
+
+@dataclass(frozen=True)
+class AccelerationBound(_BoundFeature):
+    kind: ClassVar[str] = "acceleration_bound"
+
+    def steps(self, K):
+        return list(range(K))
+
+    def _q(self, ctx, k):
+        return ctx.dynamics.acceleration(ctx.U[:, k])
+
+
+@dataclass(frozen=True)
+class TurnRateBound(_BoundFeature):
+    kind: ClassVar[str] = "turn_rate_bound"
+
+    def steps(self, K):
+        return list(range(K))
+
+    def _q(self, ctx, k):
+        return ctx.dynamics.turn_rate(ctx.X[:, k], ctx.U[:, k])
+
+
+# --- pairwise -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PairFeature:
+    """Base of pairwise features ``d(x_i, x_j)``; must be symmetric in ``(i, j)``."""
+
+    kind: ClassVar[str] = ""
+    label: str | None = None
+    weight: float = 1.0  # default value of the weight parameter of every pair
+    pairs: tuple[tuple[str, str], ...] | None = None  # None: every pair of agents
+
+    @property
+    def key(self) -> str:
+        return self.label or self.kind
+
+    def steps(self, K: int) -> list[int]:
+        raise NotImplementedError
+
+    def residual(self, a: AgentContext, b: AgentContext):
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        d = {"type": self.kind}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None:
+                continue
+            d[f.name] = [list(p) for p in v] if f.name == "pairs" else v
+        return d
+
+
+@dataclass(frozen=True)
+class Collision(PairFeature):
+    kind: ClassVar[str] = "collision"
+    every: int = 1
+
+    def __post_init__(self):
+        if not (isinstance(self.every, int) and self.every >= 1):
+            raise SpecError("collision.every", f"expected an integer >= 1, got {self.every!r}")
+
+    def steps(self, K):
+        return list(range(self.every, K + 1, self.every))
+
+    def residual(self, a, b):
+        pa, pb = a.dynamics.position, b.dynamics.position
+        return _cols(
+            lambda k: ca.fmax(0, a.radius + b.radius - smooth_distance(pa(a.X[:, k]), pb(b.X[:, k]))),
+            self.steps(a.K),
+        )
+
+
+OWN_FEATURES: dict[str, type[Feature]] = {
+    c.kind: c
+    for c in (
+        Goal,
+        Velocity,
+        Acceleration,
+        Jerk,
+        TurnRate,
+        TurnAcceleration,
+        ReferenceVelocity,
+        Path,
+        VelocityBound,
+        AccelerationBound,
+        TurnRateBound,
+    )
+}
+PAIR_FEATURES: dict[str, type[PairFeature]] = {Collision.kind: Collision}
+
+
+def _construct(registry: dict, spec: Any, where: str):
+    if isinstance(spec, tuple(registry.values())):
+        return spec
+    if isinstance(spec, str):
+        spec = {"type": spec}
+    if not isinstance(spec, dict) or "type" not in spec:
+        raise SpecError(where, f"expected a feature name or a mapping with 'type', got {spec!r}")
+    kind = spec["type"]
+    if kind not in registry:
+        raise SpecError(f"{where}.type", f"unknown feature {kind!r}; expected one of {sorted(registry)}")
+    cls = registry[kind]
+    names = {f.name for f in fields(cls)}
+    opts = {k: v for k, v in spec.items() if k != "type"}
+    unknown = set(opts) - names
+    if unknown:
+        raise SpecError(where, f"unknown option(s) {sorted(unknown)} for feature '{kind}'; allowed: {sorted(names)}")
+    if "pairs" in opts and opts["pairs"] is not None:
+        opts["pairs"] = tuple(tuple(p) for p in opts["pairs"])
+    try:
+        return cls(**opts)
+    except TypeError as e:  # wrong value types
+        raise SpecError(where, str(e)) from None
+
+
+def make_feature(spec: Any, where: str = "feature") -> Feature:
+    """Own feature from a name, a mapping ``{"type": ..., options}`` or an instance."""
+    return _construct(OWN_FEATURES, spec, where)
+
+
+def make_pair_feature(spec: Any, where: str = "pair_feature") -> PairFeature:
+    return _construct(PAIR_FEATURES, spec, where)
+

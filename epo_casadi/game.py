@@ -1,0 +1,630 @@
+"""The single-shooting potential game: the problem contract of the whole toolkit.
+
+Every other module refers to this docstring for notation, shapes and index order.
+
+Agents and time
+    ``N`` agents, indexed ``i = 0..N-1`` in the order of :attr:`GameSpec.agents`.
+    Agent ``i`` has ``nx_i`` states and ``nu_i`` controls (:mod:`epo_casadi.dynamics`).
+    Horizon ``K`` steps of length ``dt``: controls ``u_{i,k}`` for ``k = 0..K-1``, states
+    ``x_{i,k}`` for ``k = 0..K``, ``x_{i,k+1} = f_i(x_{i,k}, u_{i,k}, dt)``, ``x_{i,0}`` given.
+
+Decision variable ``u`` (the joint open-loop strategy), length ``n_u = K * sum_i nu_i``
+    agent-major, then time, then control component::
+
+        u[uoff_i + k * nu_i + c]    (uoff_i = K * sum_{j<i} nu_j)
+
+    :meth:`PotentialGame.split_controls` turns it into per-agent ``(K, nu_i)`` arrays.
+
+Rolled-out states ``x``, length ``n_x = (K+1) * sum_i nx_i``, same order::
+
+        x[xoff_i + k * nx_i + c]    (k = 0..K; the k = 0 block is the initial state)
+
+Parameters ``p``, length ``n_p``: one flat vector, described by :class:`ParamLayout`
+    (:attr:`PotentialGame.params`), made of named blocks in this order:
+    ``x0.<agent>`` (initial state, ``nx_i``), ``goal.<agent>`` (2), ``vref.<agent>`` (1),
+    ``path.<agent>`` (``2 P``, polyline vertices ``x0, y0, x1, y1, ...``), then the own
+    weights ``w.<agent>.<feature>`` (1 each) and the pair weights
+    ``w.<agent_a>-<agent_b>.<feature>`` (1 each, ``a`` before ``b`` in agent order).
+    Reference blocks exist only for agents with a feature that reads them.
+
+Residual ``r(u, p)`` and energy (paper Eq. (6)-(7))
+    ``r`` stacks weighted feature residuals: for each agent, each own feature in the
+    order given, ``w * c(.)``; then for each pair feature, each pair ``a < b``,
+    ``w * d(.)``. :attr:`PotentialGame.terms` lists every block (agent, feature, weight
+    parameter, time steps, rows). The energy is ``E(u, p) = 1/2 ||r(u, p)||^2``.
+
+Agent costs (the game)
+    ``C_i(u, p) = own_i + sum_{j != i} pair_ij`` with ``own_i`` the energy of agent
+    ``i``'s own blocks and ``pair_ij`` the energy of the pair blocks of ``{i, j}``. Pair
+    terms are shared by both agents, so ``C_i - E`` does not depend on ``u_i``: every
+    stationary point of ``E`` is stationary for each ``C_i`` in ``u_i``, and a minimizer of
+    ``E`` is an open-loop Nash equilibrium (paper Theorem 1).
+
+Batches
+    Numeric arrays may carry leading batch dimensions: ``u`` as ``(B, n_u)``, ``p`` as
+    ``(B, n_p)``. CasADi functions take one problem (column vectors).
+
+Named CasADi functions (:meth:`PotentialGame.function`), all with inputs ``(u, p)``
+unless noted: ``rollout -> x``, ``residual -> r``, ``energy -> E``,
+``gradient -> g``, ``jacobian -> J`` (of ``r``), ``hessian -> H`` (exact, of ``E``),
+``gn_hessian -> H`` (``J'J``), ``agent_costs -> C`` (``N``),
+``pseudo_gradient -> g`` (stacked ``dC_i/du_i``), ``term_energies -> e`` (one per
+term), ``lm_terms -> (r, J)`` (dense ``J``, for batched solvers),
+``traj_residual(x, u, p) -> r`` and ``traj_agent_costs(x, u, p) -> C`` (states as free
+inputs, for solvers that do not roll out, e.g. iLQ games).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from functools import cached_property
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from .dynamics import Dynamics, make_dynamics
+from .errors import SpecError
+from .features import (
+    AgentContext,
+    Feature,
+    PairFeature,
+    Path,
+    make_feature,
+    make_pair_feature,
+)
+
+__all__ = ["AgentSpec", "GameSpec", "ParamBlock", "ParamLayout", "Term", "PotentialGame"]
+
+
+def _finite_vector(value, size: int | None, where: str) -> tuple[float, ...]:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SpecError(where, f"expected a list of numbers, got {value!r}") from None
+    if size is not None and arr.size != size:
+        raise SpecError(where, f"expected {size} numbers, got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise SpecError(where, f"expected finite numbers, got {arr.tolist()}")
+    return tuple(float(v) for v in arr)
+
+
+# --------------------------------------------------------------------------------------
+# Specs
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent: dynamics, geometry, own features and default reference values.
+
+    ``x0``, ``goal``, ``vref`` and ``path`` are the *default* values of the agent's
+    parameter blocks; every one of them can be changed per solve through ``p``.
+    """
+
+    name: str
+    dynamics: Dynamics | str | dict = "unicycle"
+    features: Sequence[Feature | str | dict] = ()
+    radius: float = 0.25
+    x0: Sequence[float] | None = None
+    goal: Sequence[float] | None = None
+    vref: float | None = None
+    path: Sequence[Sequence[float]] | None = None
+
+    def __post_init__(self):
+        where = f"agents[{self.name!r}]"
+        if not isinstance(self.name, str) or not self.name or "." in self.name or "-" in self.name:
+            raise SpecError("agents.name", f"expected a non-empty name without '.' or '-', got {self.name!r}")
+        dyn = make_dynamics(self.dynamics)
+        object.__setattr__(self, "dynamics", dyn)
+        r = self.radius
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r) or r < 0:
+            raise SpecError(f"{where}.radius", f"expected a finite number >= 0 (metres), got {r!r}")
+        if self.x0 is not None:
+            object.__setattr__(self, "x0", _finite_vector(self.x0, dyn.nx, f"{where}.x0"))
+        if self.goal is not None:
+            object.__setattr__(self, "goal", _finite_vector(self.goal, 2, f"{where}.goal"))
+        if self.vref is not None:
+            object.__setattr__(self, "vref", _finite_vector(self.vref, 1, f"{where}.vref")[0])
+        if self.path is not None:
+            pts = np.asarray(_finite_vector(self.path, None, f"{where}.path"))
+            if pts.size < 4 or pts.size % 2:
+                raise SpecError(f"{where}.path", "expected a list of at least two [x, y] points")
+            object.__setattr__(self, "path", tuple(map(tuple, pts.reshape(-1, 2).tolist())))
+        feats, keys = [], set()
+        for n, f in enumerate(self.features):
+            f = make_feature(f, f"{where}.features[{n}]")
+            if isinstance(f, Path):
+                npts = len(self.path) if self.path is not None else None
+                if f.points is None:
+                    if npts is None:
+                        raise SpecError(f"{where}.path", "the 'path' feature needs the agent's path (or 'points')")
+                    f = replace(f, points=npts)
+                elif npts is not None and npts != f.points:
+                    raise SpecError(f"{where}.path", f"feature expects {f.points} points, path has {npts}")
+            if f.key in keys:
+                raise SpecError(f"{where}.features[{n}]", f"duplicate feature {f.key!r}; give one a 'label'")
+            keys.add(f.key)
+            try:
+                f.check(dyn)
+            except SpecError as e:
+                raise SpecError(f"{where}.features[{n}]", e.message) from None
+            feats.append(f)
+        object.__setattr__(self, "features", tuple(feats))
+
+    def refs(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for f in self.features:
+            out.update(f.refs())
+        return out
+
+    def to_dict(self) -> dict:
+        d: dict[str, Any] = {
+            "name": self.name,
+            "dynamics": self.dynamics.to_dict(),
+            "radius": self.radius,
+            "features": [f.to_dict() for f in self.features],
+        }
+        for k in ("x0", "goal", "vref"):
+            if getattr(self, k) is not None:
+                d[k] = list(getattr(self, k)) if k != "vref" else self.vref
+        if self.path is not None:
+            d["path"] = [list(p) for p in self.path]
+        return d
+
+
+@dataclass(frozen=True)
+class GameSpec:
+    """A game: agents, pairwise features, horizon ``K`` and step ``dt`` (seconds)."""
+
+    agents: Sequence[AgentSpec]
+    pair_features: Sequence[PairFeature | str | dict] = ()
+    horizon: int = 40
+    dt: float = 0.1
+
+    def __post_init__(self):
+        agents = tuple(self.agents)
+        if not agents:
+            raise SpecError("agents", "a game needs at least one agent")
+        for n, a in enumerate(agents):
+            if not isinstance(a, AgentSpec):
+                raise SpecError(f"agents[{n}]", f"expected an AgentSpec, got {type(a).__name__}")
+        names = [a.name for a in agents]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise SpecError("agents.name", f"agent names must be unique, repeated: {sorted(dup)}")
+        K = self.horizon
+        if isinstance(K, bool) or not isinstance(K, int) or K < 1:
+            raise SpecError("horizon", f"expected an integer number of steps >= 1, got {K!r}")
+        dt = self.dt
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+            raise SpecError("dt", f"expected a step length > 0 in seconds, got {dt!r}")
+        pfs, keys = [], set()
+        for n, pf in enumerate(self.pair_features):
+            pf = make_pair_feature(pf, f"pair_features[{n}]")
+            if pf.key in keys:
+                raise SpecError(f"pair_features[{n}]", f"duplicate pair feature {pf.key!r}; give one a 'label'")
+            keys.add(pf.key)
+            w = pf.weight
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
+                raise SpecError(f"pair_features[{n}].weight", f"expected a finite number, got {w!r}")
+            for pr in pf.pairs or ():
+                if len(pr) != 2 or pr[0] == pr[1] or any(a not in names for a in pr):
+                    raise SpecError(f"pair_features[{n}].pairs", f"expected two different agent names from {names}, got {list(pr)}")
+            pfs.append(pf)
+        object.__setattr__(self, "agents", agents)
+        object.__setattr__(self, "pair_features", tuple(pfs))
+        object.__setattr__(self, "dt", float(dt))
+
+    def pairs_of(self, pf: PairFeature) -> list[tuple[int, int]]:
+        """Index pairs ``(a, b)``, ``a < b``, that ``pf`` couples, in agent order."""
+        idx = {a.name: n for n, a in enumerate(self.agents)}
+        if pf.pairs is None:
+            N = len(self.agents)
+            return [(a, b) for a in range(N) for b in range(a + 1, N)]
+        out = sorted({tuple(sorted((idx[x], idx[y]))) for x, y in pf.pairs})
+        return [(int(a), int(b)) for a, b in out]
+
+    def to_dict(self) -> dict:
+        return {
+            "horizon": self.horizon,
+            "dt": self.dt,
+            "agents": [a.to_dict() for a in self.agents],
+            "pair_features": [pf.to_dict() for pf in self.pair_features],
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Parameter layout
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParamBlock:
+    name: str  # e.g. "x0.robot", "w.robot.goal", "w.robot-ped.collision"
+    group: str  # "x0" | "goal" | "vref" | "path" | "w_own" | "w_pair"
+    start: int
+    size: int
+    default: tuple[float, ...]
+    entries: tuple[str, ...]  # one readable name per entry
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.start + self.size)
+
+
+class ParamLayout:
+    """Names, offsets and defaults of the flat parameter vector ``p``."""
+
+    GROUPS = ("x0", "goal", "vref", "path", "w_own", "w_pair")
+
+    def __init__(self, blocks: Sequence[ParamBlock]):
+        self.blocks: tuple[ParamBlock, ...] = tuple(blocks)
+        self._by_name = {b.name: b for b in self.blocks}
+
+    @property
+    def size(self) -> int:
+        return sum(b.size for b in self.blocks)
+
+    @property
+    def names(self) -> list[str]:
+        """One name per entry of ``p`` (e.g. ``x0.robot.v``)."""
+        return [e for b in self.blocks for e in b.entries]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._by_name
+
+    def __getitem__(self, name: str) -> ParamBlock:
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise SpecError("params", f"unknown parameter block {name!r}; known: {list(self._by_name)}") from None
+
+    def group(self, group: str) -> np.ndarray:
+        """Indices into ``p`` of all entries of ``group`` (see :attr:`GROUPS`)."""
+        if group not in self.GROUPS:
+            raise SpecError("group", f"expected one of {self.GROUPS}, got {group!r}")
+        idx = [np.arange(b.start, b.start + b.size) for b in self.blocks if b.group == group]
+        return np.concatenate(idx) if idx else np.zeros(0, dtype=int)
+
+    def defaults(self) -> np.ndarray:
+        return np.array([v for b in self.blocks for v in b.default], dtype=float)
+
+    def pack(self, values: Mapping[str, Any] | None = None, base: np.ndarray | None = None) -> np.ndarray:
+        """A parameter vector: ``base`` (default: :meth:`defaults`) with named blocks replaced.
+
+        ``values`` maps block names to numbers or arrays of the block's size; an unknown
+        name, a wrong size or a non-finite value raises :class:`SpecError`.
+        """
+        p = self.defaults() if base is None else np.array(base, dtype=float).reshape(-1).copy()
+        if p.size != self.size:
+            raise SpecError("params", f"expected a vector of {self.size} entries, got {p.size}")
+        for name, v in (values or {}).items():
+            b = self[name]
+            p[b.slice] = _finite_vector(v, b.size, f"params[{name!r}]")
+        return p
+
+    def unpack(self, p: np.ndarray) -> dict[str, np.ndarray]:
+        """Block name -> values; ``p`` may carry leading batch dimensions."""
+        p = np.asarray(p)
+        if p.shape[-1] != self.size:
+            raise SpecError("params", f"expected a last dimension of {self.size}, got {p.shape}")
+        return {b.name: p[..., b.slice] for b in self.blocks}
+
+    def __repr__(self) -> str:
+        lines = [f"ParamLayout({self.size} entries)"]
+        for b in self.blocks:
+            lines.append(f"  [{b.start:4d}:{b.start + b.size:4d}] {b.name:32s} {b.group}")
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class Term:
+    """One block of the residual vector (see the module docstring)."""
+
+    index: int
+    kind: str  # "own" | "pair"
+    agents: tuple[str, ...]
+    feature: str  # feature key (label or kind)
+    feature_type: str
+    weight: str  # name of the weight parameter block
+    steps: tuple[int, ...]
+    rows: slice  # rows of r
+
+    @property
+    def size(self) -> int:
+        return self.rows.stop - self.rows.start
+
+
+# --------------------------------------------------------------------------------------
+# The game
+# --------------------------------------------------------------------------------------
+class PotentialGame:
+    """Symbolic single-shooting potential game built from a :class:`GameSpec`.
+
+    See the module docstring for the contract. Functions are built on first use and
+    cached; :meth:`function` returns one by name, :attr:`FUNCTIONS` lists them.
+    """
+
+    FUNCTIONS = (
+        "rollout",
+        "residual",
+        "energy",
+        "gradient",
+        "jacobian",
+        "hessian",
+        "gn_hessian",
+        "agent_costs",
+        "pseudo_gradient",
+        "term_energies",
+        "lm_terms",
+        "traj_residual",
+        "traj_agent_costs",
+    )
+
+    def __init__(self, spec: GameSpec):
+        if not isinstance(spec, GameSpec):
+            raise SpecError("spec", f"expected a GameSpec, got {type(spec).__name__}")
+        self.spec = spec
+        self.K = spec.horizon
+        self.dt = spec.dt
+        self.agents = spec.agents
+        self.N = len(spec.agents)
+        self.agent_names = [a.name for a in spec.agents]
+        self.nx = [a.dynamics.nx for a in spec.agents]
+        self.nu = [a.dynamics.nu for a in spec.agents]
+        self.uoff = np.concatenate([[0], np.cumsum([self.K * n for n in self.nu])]).astype(int)
+        self.xoff = np.concatenate([[0], np.cumsum([(self.K + 1) * n for n in self.nx])]).astype(int)
+        self.n_u = int(self.uoff[-1])
+        self.n_x = int(self.xoff[-1])
+        self.params = self._layout()
+        self.n_p = self.params.size
+        self._build()
+        self._cache: dict[str, ca.Function] = {}
+
+    # ---- layout ----------------------------------------------------------------------
+    def _layout(self) -> ParamLayout:
+        blocks: list[ParamBlock] = []
+        start = 0
+
+        def add(name, group, default, entries):
+            nonlocal start
+            default = tuple(float(v) for v in default)
+            blocks.append(ParamBlock(name, group, start, len(default), default, tuple(entries)))
+            start += len(default)
+
+        for a in self.agents:
+            x0 = a.x0 if a.x0 is not None else (0.0,) * a.dynamics.nx
+            add(f"x0.{a.name}", "x0", x0, [f"x0.{a.name}.{s}" for s in a.dynamics.state_names])
+        refs = [a.refs() for a in self.agents]
+        for a, r in zip(self.agents, refs, strict=True):
+            if "goal" in r:
+                g = a.goal if a.goal is not None else (0.0, 0.0)
+                add(f"goal.{a.name}", "goal", g, [f"goal.{a.name}.x", f"goal.{a.name}.y"])
+        for a, r in zip(self.agents, refs, strict=True):
+            if "vref" in r:
+                add(f"vref.{a.name}", "vref", [a.vref or 0.0], [f"vref.{a.name}"])
+        for a, r in zip(self.agents, refs, strict=True):
+            if "path" in r:
+                n = r["path"] // 2
+                pts = np.asarray(a.path, float).reshape(-1) if a.path is not None else np.zeros(2 * n)
+                add(f"path.{a.name}", "path", pts, [f"path.{a.name}.{c}{j}" for j in range(n) for c in "xy"])
+        for a in self.agents:
+            for f in a.features:
+                add(f"w.{a.name}.{f.key}", "w_own", [f.weight], [f"w.{a.name}.{f.key}"])
+        for pf in self.spec.pair_features:
+            for i, j in self.spec.pairs_of(pf):
+                nm = f"w.{self.agent_names[i]}-{self.agent_names[j]}.{pf.key}"
+                add(nm, "w_pair", [pf.weight], [nm])
+        return ParamLayout(blocks)
+
+    # ---- symbolic build -----------------------------------------------------------------
+    def _contexts(self, x, u, p) -> list[AgentContext]:
+        ctxs = []
+        for i, a in enumerate(self.agents):
+            X = ca.reshape(x[int(self.xoff[i]) : int(self.xoff[i + 1])], self.nx[i], self.K + 1)
+            U = ca.reshape(u[int(self.uoff[i]) : int(self.uoff[i + 1])], self.nu[i], self.K)
+            refs = {}
+            for r in a.refs():
+                b = self.params[f"{r}.{a.name}"]
+                refs[r] = p[b.start : b.start + b.size]
+            ctxs.append(AgentContext(a.dynamics, X, U, self.dt, refs, float(a.radius)))
+        return ctxs
+
+    def _rollout_expr(self, u, p):
+        cols = []
+        for i, a in enumerate(self.agents):
+            b = self.params[f"x0.{a.name}"]
+            xk = p[b.start : b.start + b.size]
+            U = ca.reshape(u[int(self.uoff[i]) : int(self.uoff[i + 1])], self.nu[i], self.K)
+            traj = [xk]
+            for k in range(self.K):
+                xk = a.dynamics.step(xk, U[:, k], self.dt)
+                traj.append(xk)
+            cols.append(ca.vertcat(*traj))
+        return ca.vertcat(*cols)
+
+    def _build(self):
+        u = ca.SX.sym("u", self.n_u)
+        p = ca.SX.sym("p", self.n_p)
+        x = ca.SX.sym("x", self.n_x)
+        ctxs = self._contexts(x, u, p)
+        blocks, terms, row = [], [], 0
+        for i, a in enumerate(self.agents):
+            for f in a.features:
+                w = p[self.params[f"w.{a.name}.{f.key}"].start]
+                r = w * f.residual(ctxs[i])
+                terms.append(
+                    Term(len(terms), "own", (a.name,), f.key, f.kind, f"w.{a.name}.{f.key}",
+                         tuple(f.steps(self.K)), slice(row, row + r.shape[0]))
+                )
+                blocks.append(r)
+                row += r.shape[0]
+        for pf in self.spec.pair_features:
+            for i, j in self.spec.pairs_of(pf):
+                nm = f"w.{self.agent_names[i]}-{self.agent_names[j]}.{pf.key}"
+                r = p[self.params[nm].start] * pf.residual(ctxs[i], ctxs[j])
+                terms.append(
+                    Term(len(terms), "pair", (self.agent_names[i], self.agent_names[j]), pf.key,
+                         pf.kind, nm, tuple(pf.steps(self.K)), slice(row, row + r.shape[0]))
+                )
+                blocks.append(r)
+                row += r.shape[0]
+        self.terms: tuple[Term, ...] = tuple(terms)
+        self.n_r = row
+        r_traj = ca.vertcat(*blocks) if blocks else ca.SX(0, 1)
+        # per-term energies and agent costs, in trajectory form
+        e_terms = ca.vertcat(*[0.5 * ca.sumsqr(b) for b in blocks]) if blocks else ca.SX(0, 1)
+        C = []
+        for a in self.agent_names:
+            idx = [t.index for t in self.terms if a in t.agents]
+            C.append(ca.sum1(e_terms[idx]) if idx else ca.SX(0))
+        C = ca.vertcat(*C)
+        self._traj = {
+            "traj_residual": ca.Function("traj_residual", [x, u, p], [r_traj], ["x", "u", "p"], ["r"]),
+            "traj_term_energies": ca.Function("traj_term_energies", [x, u, p], [e_terms], ["x", "u", "p"], ["e"]),
+            "traj_agent_costs": ca.Function("traj_agent_costs", [x, u, p], [C], ["x", "u", "p"], ["C"]),
+        }
+        self._u, self._p = u, p
+        self._x_roll = self._rollout_expr(u, p)
+        self._r = self._traj["traj_residual"](self._x_roll, u, p)
+        self._e_terms = self._traj["traj_term_energies"](self._x_roll, u, p)
+        self._C = self._traj["traj_agent_costs"](self._x_roll, u, p)
+        self._E = 0.5 * ca.sumsqr(self._r)
+
+    # ---- functions ----------------------------------------------------------------------
+    def function(self, name: str) -> ca.Function:
+        """The named CasADi function (see :attr:`FUNCTIONS` and the module docstring)."""
+        if name in self._cache:
+            return self._cache[name]
+        if name in self._traj and name != "traj_term_energies":
+            f = self._traj[name]
+        elif name in self.FUNCTIONS:
+            f = getattr(self, f"_make_{name}")()
+        else:
+            raise SpecError("function", f"unknown function {name!r}; expected one of {list(self.FUNCTIONS)}")
+        self._cache[name] = f
+        return f
+
+    def functions(self) -> dict[str, ca.Function]:
+        return {n: self.function(n) for n in self.FUNCTIONS}
+
+    def _fn(self, name, outs, onames):
+        return ca.Function(name, [self._u, self._p], outs, ["u", "p"], onames)
+
+    def _make_rollout(self):
+        return self._fn("rollout", [self._x_roll], ["x"])
+
+    def _make_residual(self):
+        return self._fn("residual", [self._r], ["r"])
+
+    def _make_energy(self):
+        return self._fn("energy", [self._E], ["E"])
+
+    def _make_gradient(self):
+        return self._fn("gradient", [ca.gradient(self._E, self._u)], ["g"])
+
+    def _make_jacobian(self):
+        return self._fn("jacobian", [ca.jacobian(self._r, self._u)], ["J"])
+
+    def _make_hessian(self):
+        H, _ = ca.hessian(self._E, self._u)
+        return self._fn("hessian", [H], ["H"])
+
+    def _make_gn_hessian(self):
+        J = ca.jacobian(self._r, self._u)
+        return self._fn("gn_hessian", [ca.mtimes(J.T, J)], ["H"])
+
+    def _make_agent_costs(self):
+        return self._fn("agent_costs", [self._C], ["C"])
+
+    def _make_pseudo_gradient(self):
+        parts = []
+        for i in range(self.N):
+            ui = self._u[int(self.uoff[i]) : int(self.uoff[i + 1])]
+            parts.append(ca.gradient(self._C[i], ui))
+        return self._fn("pseudo_gradient", [ca.vertcat(*parts)], ["g"])
+
+    def _make_term_energies(self):
+        return self._fn("term_energies", [self._e_terms], ["e"])
+
+    def _make_lm_terms(self):
+        return self._fn("lm_terms", [self._r, ca.densify(ca.jacobian(self._r, self._u))], ["r", "J"])
+
+    # ---- symbolic access for other builders -----------------------------------------------
+    @property
+    def symbols(self) -> dict[str, Any]:
+        """The SX symbols and expressions: ``u``, ``p``, ``x`` (rollout), ``r``, ``E``, ``C``."""
+        return {"u": self._u, "p": self._p, "x": self._x_roll, "r": self._r, "E": self._E, "C": self._C}
+
+    # ---- numeric helpers ------------------------------------------------------------------
+    def default_params(self, **values) -> np.ndarray:
+        """The parameter vector of the spec's defaults, with named blocks replaced.
+
+        Keywords name blocks with ``__`` for ``.`` (``goal__robot=[1, 2]``); for names
+        that are not identifiers use ``game.params.pack({...})``.
+        """
+        return self.params.pack({k.replace("__", "."): v for k, v in values.items()})
+
+    def split_controls(self, u: np.ndarray) -> list[np.ndarray]:
+        """Per-agent controls ``(..., K, nu_i)`` from ``u`` of shape ``(..., n_u)``."""
+        u = np.asarray(u)
+        return [
+            u[..., self.uoff[i] : self.uoff[i + 1]].reshape(*u.shape[:-1], self.K, self.nu[i])
+            for i in range(self.N)
+        ]
+
+    def join_controls(self, parts: Sequence[np.ndarray]) -> np.ndarray:
+        """Inverse of :meth:`split_controls`."""
+        if len(parts) != self.N:
+            raise SpecError("controls", f"expected {self.N} per-agent arrays, got {len(parts)}")
+        flat = []
+        for i, a in enumerate(parts):
+            a = np.asarray(a, dtype=float)
+            if a.shape[-2:] != (self.K, self.nu[i]):
+                raise SpecError(f"controls[{i}]", f"expected shape (..., {self.K}, {self.nu[i]}), got {a.shape}")
+            flat.append(a.reshape(*a.shape[:-2], -1))
+        return np.concatenate(flat, axis=-1)
+
+    def split_states(self, x: np.ndarray) -> list[np.ndarray]:
+        """Per-agent states ``(..., K+1, nx_i)`` from ``x`` of shape ``(..., n_x)``."""
+        x = np.asarray(x)
+        return [
+            x[..., self.xoff[i] : self.xoff[i + 1]].reshape(*x.shape[:-1], self.K + 1, self.nx[i])
+            for i in range(self.N)
+        ]
+
+    def positions(self, x: np.ndarray) -> np.ndarray:
+        """Positions ``(..., N, K+1, 2)`` of every agent (first two state entries)."""
+        return np.stack([s[..., :2] for s in self.split_states(x)], axis=-3)
+
+    def zero_controls(self) -> np.ndarray:
+        return np.zeros(self.n_u)
+
+    def check_inputs(self, u, p) -> tuple[np.ndarray, np.ndarray]:
+        """Validate shapes and finiteness; return float arrays ``(B, n_u)``, ``(B, n_p)``."""
+        u = np.asarray(u, dtype=float)
+        p = np.asarray(p, dtype=float)
+        if u.shape[-1:] != (self.n_u,):
+            raise SpecError("u", f"expected last dimension n_u = {self.n_u}, got shape {u.shape}")
+        if p.shape[-1:] != (self.n_p,):
+            raise SpecError("p", f"expected last dimension n_p = {self.n_p}, got shape {p.shape}")
+        u2, p2 = np.atleast_2d(u), np.atleast_2d(p)
+        if u2.ndim != 2 or p2.ndim != 2:
+            raise SpecError("u/p", f"expected 1-D or 2-D (batch, n) arrays, got {u.shape} and {p.shape}")
+        B = max(u2.shape[0], p2.shape[0])
+        if u2.shape[0] not in (1, B) or p2.shape[0] not in (1, B):
+            raise SpecError("u/p", f"batch sizes differ: {u2.shape[0]} and {p2.shape[0]}")
+        u2 = np.broadcast_to(u2, (B, self.n_u))
+        p2 = np.broadcast_to(p2, (B, self.n_p))
+        if not np.all(np.isfinite(u2)):
+            raise SpecError("u", "contains NaN or inf")
+        if not np.all(np.isfinite(p2)):
+            bad = sorted({self.params.names[j] for j in np.where(~np.isfinite(p2))[1]})
+            raise SpecError("p", f"contains NaN or inf in {bad}")
+        return np.ascontiguousarray(u2), np.ascontiguousarray(p2)
+
+    def __repr__(self) -> str:
+        return (
+            f"PotentialGame(N={self.N}, K={self.K}, dt={self.dt}, n_u={self.n_u}, "
+            f"n_p={self.n_p}, n_r={self.n_r}, terms={len(self.terms)})"
+        )
+

@@ -1,0 +1,1 @@
+"""Torch side: the differentiable game layer, networks, losses, metrics, training."""

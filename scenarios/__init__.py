@@ -1,0 +1,1 @@
+"""Games and data: example game files, scenario generators, dataset files, CLI. No torch."""

@@ -1,0 +1,82 @@
+"""The ``epo`` command line.
+
+Subcommands live in their own modules and are imported only when used, so ``epo
+--help`` stays fast and ``epo solve`` never imports torch. Toolkit errors
+(:class:`epo_casadi.errors.EpoError`, file and option errors) print one line naming
+the field and exit with status 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from epo_casadi.errors import EpoError
+
+# name -> "module:attribute" of a click command or group
+COMMANDS: dict[str, tuple[str, str]] = {
+    "solve": ("scenarios.commands.solve:solve", "Solve a game file with LM or IPOPT."),
+    "inspect": ("scenarios.commands.inspect:inspect_cmd", "List every energy term of a game file."),
+    "demo": ("scenarios.commands.demo:demo", "Run the main job on built-in defaults."),
+    "generate": ("scenarios.commands.generate:generate", "Generate a dataset (e.g. rpi)."),
+    "data": ("scenarios.commands.data:data", "Verify or show a generated dataset."),
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in COMMANDS:
+            return None
+        target, _ = COMMANDS[name]
+        mod, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(mod), attr)
+        except (ImportError, AttributeError) as e:  # pragma: no cover - a broken install
+
+            @click.command(name=name, help=COMMANDS[name][1])
+            def unavailable():
+                raise click.ClickException(f"'{name}' is not available in this install: {e}")
+
+            return unavailable
+
+    def format_commands(self, ctx, formatter):
+        rows = [(n, COMMANDS[n][1]) for n in self.list_commands(ctx)]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup)
+@click.version_option(package_name="epo")
+def cli():
+    """epo: energy-based potential games for joint motion forecasting and control."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: runs the CLI, turns toolkit errors into one-line messages."""
+    try:
+        cli.main(args=argv, prog_name="epo", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("Aborted.", err=True)
+        return 130
+    except click.ClickException as e:
+        e.show()
+        return e.exit_code
+    except EpoError as e:
+        click.echo(f"error: {e}", err=True)
+        return 2
+    except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
+        click.echo(f"error: {e.filename}: {e.strerror}", err=True)
+        return 2
+    except KeyboardInterrupt:
+        click.echo("Interrupted.", err=True)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,261 @@
+"""Batched Levenberg-Marquardt on the potential ``E(u, p) = 1/2 ||r(u, p)||^2``.
+
+One call solves ``B`` problems (e.g. batch x modes) with their own parameters and
+initial strategies. Each step, for every problem (paper Sec. 4.2, Theseus semantics)::
+
+    (J'J + lambda D) du = -J'r,        u <- u + alpha * du
+
+with ``D = I`` (or ``diag(J'J)`` with ``ellipsoidal=True``), damping ``lambda`` and step
+size ``alpha``. :meth:`LMOptions.paper` gives the paper's setting (``S = 2`` steps,
+``alpha = 0.3``, ``lambda = 10``, no adaptation). With ``adaptive_damping`` a step that
+does not lower the energy is rejected and ``lambda`` grows; an accepted one shrinks it.
+
+The linear algebra is a *Gauss-Newton backend* (:class:`DenseGN` here): it evaluates
+``r`` and ``J`` for the whole batch with mapped CasADi functions (no Python loop per
+problem) and solves the damped normal equations numerically (batched Cholesky), never
+with a symbolic inverse. The same backend is reused by the differentiable layer to
+solve with the same matrix in its backward pass.
+
+Shapes follow :mod:`epo_casadi.game`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+from .batch import BatchFunction
+from .result import SolveResult, Status
+
+__all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options"]
+
+
+def check_options(cls, values: dict | None, where: str):
+    """Build a frozen options dataclass from a dict; unknown keys are an error."""
+    if values is None:
+        return cls()
+    if isinstance(values, cls):
+        return values
+    if not isinstance(values, dict):
+        raise SpecError(where, f"expected a mapping of options, got {type(values).__name__}")
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise SpecError(where, f"unknown option(s) {unknown}; allowed: {sorted(names)}")
+    return cls(**values)
+
+
+def _pos(name, v, allow_zero=False):
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+    ok = ok and (v >= 0 if allow_zero else v > 0)
+    if not ok:
+        raise SpecError(f"lm.{name}", f"expected a finite number {'>=' if allow_zero else '>'} 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    """Levenberg-Marquardt options (defaults: a converging standalone solve)."""
+
+    steps: int = 100  #: maximum number of steps S
+    step_size: float = 1.0  #: alpha in u <- u + alpha du, 0 < alpha <= 1
+    damping: float = 1e-2  #: initial damping lambda
+    adaptive_damping: bool = True  #: reject energy-increasing steps and adapt lambda
+    damping_up: float = 10.0  #: factor on lambda after a rejected step
+    damping_down: float = 0.3  #: factor on lambda after an accepted step
+    min_damping: float = 1e-9  #: lower clamp of lambda
+    max_damping: float = 1e9  #: a problem whose lambda exceeds this cannot decrease E: converged
+    ellipsoidal: bool = False  #: D = diag(J'J) instead of the identity
+    gtol: float = 1e-8  #: stop when |J'r|_inf <= gtol (0 disables)
+    ftol: float = 1e-12  #: stop when an accepted step lowers E by <= ftol * (1 + E) (0 disables)
+    backend: str = "dense"  #: Gauss-Newton backend: "dense" (or "structured" when available)
+    threads: int | None = None  #: threads for mapped evaluation (None: EPO_THREADS or all cores)
+
+    def __post_init__(self):
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
+            raise SpecError("lm.steps", f"expected an integer >= 0, got {self.steps!r}")
+        _pos("step_size", self.step_size)
+        if self.step_size > 1:
+            raise SpecError("lm.step_size", f"expected 0 < step_size <= 1, got {self.step_size}")
+        _pos("damping", self.damping, allow_zero=True)
+        _pos("damping_up", self.damping_up)
+        _pos("damping_down", self.damping_down)
+        _pos("gtol", self.gtol, allow_zero=True)
+        _pos("ftol", self.ftol, allow_zero=True)
+        if self.backend not in ("dense", "structured"):
+            raise SpecError("lm.backend", f"expected 'dense' or 'structured', got {self.backend!r}")
+
+    @classmethod
+    def paper(cls, **overrides) -> LMOptions:
+        """The paper's layer setting: S = 2 fixed steps, alpha = 0.3, lambda = 10."""
+        base = dict(steps=2, step_size=0.3, damping=10.0, adaptive_damping=False, gtol=0.0, ftol=0.0)
+        base.update(overrides)
+        return cls(**base)
+
+
+@dataclass
+class Linearization:
+    """What a backend knows at the current iterate of every problem."""
+
+    r: np.ndarray  # (B, n_r)
+    J: np.ndarray  # (B, n_r, n_u) dense Jacobian of r
+    energy: np.ndarray  # (B,)
+    gradient: np.ndarray  # (B, n_u) = J'r
+    JtJ: np.ndarray  # (B, n_u, n_u)
+
+
+class DenseGN:
+    """Dense Gauss-Newton backend: ``r``, ``J`` by mapped CasADi, batched Cholesky solves."""
+
+    def __init__(self, game: PotentialGame, threads: int | None = None, functions: dict | None = None):
+        self.game = game
+        fn = functions or {}
+        self.lm_terms = BatchFunction(fn.get("lm_terms") or game.function("lm_terms"), threads)
+        self.energy_fn = BatchFunction(fn.get("energy") or game.function("energy"), threads)
+
+    def linearize(self, U: np.ndarray, P: np.ndarray) -> Linearization:
+        r, Jnz = self.lm_terms(U, P)
+        J = Jnz.reshape(U.shape[0], self.game.n_u, self.game.n_r).transpose(0, 2, 1)
+        g = np.einsum("bij,bi->bj", J, r)
+        JtJ = np.matmul(J.transpose(0, 2, 1), J)
+        return Linearization(r, J, 0.5 * np.einsum("bi,bi->b", r, r), g, JtJ)
+
+    def energy(self, U: np.ndarray, P: np.ndarray) -> np.ndarray:
+        return self.energy_fn(U, P)[0][:, 0]
+
+    @staticmethod
+    def solve(lin: Linearization, damping: np.ndarray, rhs: np.ndarray, ellipsoidal: bool = False) -> np.ndarray:
+        """Solve ``(J'J + damping D) x = rhs`` for every problem; ``rhs`` is ``(B, n_u)``."""
+        A = lin.JtJ.copy()
+        n = A.shape[-1]
+        diag = np.einsum("bii->bi", A)
+        d = np.where(diag > 1e-12, diag, 1e-12) if ellipsoidal else np.ones_like(diag)
+        idx = np.arange(n)
+        A[:, idx, idx] += damping[:, None] * d
+        try:
+            L = np.linalg.cholesky(A)
+            y = np.linalg.solve(L, rhs[..., None])
+            return np.linalg.solve(L.transpose(0, 2, 1), y)[..., 0]
+        except np.linalg.LinAlgError:
+            return np.linalg.solve(A, rhs[..., None])[..., 0]
+
+
+def make_backend(game: PotentialGame, options: LMOptions):
+    if options.backend == "structured":
+        from .structured import StructuredGN  # optional fast path
+
+        return StructuredGN(game, threads=options.threads)
+    return DenseGN(game, threads=options.threads)
+
+
+def solve_lm(
+    game: PotentialGame,
+    p: np.ndarray,
+    u0: np.ndarray | None = None,
+    options: LMOptions | dict | None = None,
+    backend=None,
+) -> SolveResult:
+    """Minimize the potential of ``game`` for one problem or a batch.
+
+    ``p``: ``(n_p,)`` or ``(B, n_p)``; ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if None).
+    A problem whose energy or step turns non-finite is frozen at its last finite iterate
+    with status ``NONFINITE``; the other problems continue unaffected.
+    """
+    opts = check_options(LMOptions, options, "lm")
+    t0 = time.perf_counter()
+    single = np.ndim(p) == 1 and (u0 is None or np.ndim(u0) == 1)
+    U, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)
+    U = U.copy()
+    B = U.shape[0]
+    be = backend or make_backend(game, opts)
+
+    lam = np.full(B, float(opts.damping))
+    active = np.ones(B, dtype=bool)
+    status = np.full(B, Status.MAX_ITER, dtype=object)
+    iters = np.zeros(B, dtype=int)
+    lin = be.linearize(U, P)
+    E = lin.energy.copy()
+    hist = [E.copy()]
+    lam_hist = [lam.copy()]
+    bad = ~np.isfinite(E) | ~np.all(np.isfinite(lin.gradient), axis=1)
+    status[bad], active[bad] = Status.NONFINITE, False
+
+    def converged_grad(lin_):
+        return np.max(np.abs(lin_.gradient), axis=1) <= opts.gtol if opts.gtol > 0 else np.zeros(B, bool)
+
+    done = converged_grad(lin) & active
+    status[done], active[done] = Status.CONVERGED, False
+
+    for _ in range(opts.steps):
+        if not active.any():
+            hist.append(E.copy())
+            lam_hist.append(lam.copy())
+            continue
+        du = be.solve(lin, lam, -lin.gradient, opts.ellipsoidal)
+        U_try = U + opts.step_size * du
+        finite = np.all(np.isfinite(U_try), axis=1)
+        U_try[~finite] = U[~finite]
+        if opts.adaptive_damping:
+            E_try = be.energy(U_try, P)
+            accept = active & finite & np.isfinite(E_try) & (E_try < E)
+        else:
+            accept = active & finite
+        iters[active] += 1
+        U_prev = U.copy()
+        U[accept] = U_try[accept]
+        new_lin = be.linearize(U, P)
+        E_new = new_lin.energy
+        nonfinite = active & (~finite | ~np.isfinite(E_new))
+        if nonfinite.any():  # freeze at the last finite iterate
+            U[nonfinite] = U_prev[nonfinite]
+            status[nonfinite], active[nonfinite] = Status.NONFINITE, False
+        decrease = E - E_new
+        if opts.adaptive_damping:
+            lam = np.where(accept, np.maximum(lam * opts.damping_down, opts.min_damping), lam)
+            lam = np.where(active & ~accept, lam * opts.damping_up, lam)
+            stalled = active & (lam > opts.max_damping)
+            status[stalled], active[stalled] = Status.CONVERGED, False
+        keep = ~nonfinite
+        E = np.where(keep, E_new, E)
+        lin = _merge(lin, new_lin, keep)
+        small = np.zeros(B, bool)
+        if opts.ftol > 0:
+            small = accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(E)))
+        conv = active & (converged_grad(lin) | small)
+        status[conv], active[conv] = Status.CONVERGED, False
+        hist.append(E.copy())
+        lam_hist.append(lam.copy())
+
+    X = _rollout(game, U, P, opts.threads)
+    C = BatchFunction(game.function("agent_costs"), opts.threads)(U, P)[0]
+    res = SolveResult(
+        solver="lm",
+        controls=U,
+        states=X,
+        energy=E,
+        agent_costs=C,
+        status=status,
+        iterations=iters,
+        energy_history=np.stack(hist),
+        grad_norm=np.max(np.abs(lin.gradient), axis=1) if game.n_u else np.zeros(B),
+        wall_time=time.perf_counter() - t0,
+        info={"damping": lam, "damping_history": np.stack(lam_hist), "options": opts},
+    )
+    return res[0] if single else res
+
+
+def _merge(old: Linearization, new: Linearization, keep: np.ndarray) -> Linearization:
+    if keep.all():
+        return new
+    out = Linearization(new.r.copy(), new.J.copy(), new.energy.copy(), new.gradient.copy(), new.JtJ.copy())
+    for name in ("r", "J", "energy", "gradient", "JtJ"):
+        getattr(out, name)[~keep] = getattr(old, name)[~keep]
+    return out
+
+
+def _rollout(game: PotentialGame, U, P, threads=None) -> np.ndarray:
+    return BatchFunction(game.function("rollout"), threads)(U, P)[0]

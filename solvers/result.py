@@ -1,0 +1,150 @@
+"""One result type for every solver (LM, IPOPT, iLQ game).
+
+Arrays carry the batch dimensions of the solve's input: a single problem (``u0`` of
+shape ``(n_u,)``) gives ``controls`` of shape ``(n_u,)`` and a scalar ``status``; a batch
+``(B, n_u)`` gives ``(B, n_u)`` and an array of ``B`` statuses. ``result[b]`` picks one
+problem of a batch. Shapes follow the contract in :mod:`epo_casadi.game`.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Status", "SolveResult"]
+
+
+class Status(enum.Enum):
+    """Outcome of one solve; ``message`` is a readable sentence."""
+
+    CONVERGED = "converged"
+    MAX_ITER = "max_iter"
+    NONFINITE = "nonfinite"
+    INFEASIBLE = "infeasible"
+    FAILED = "failed"
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+    @property
+    def ok(self) -> bool:
+        return self in (Status.CONVERGED, Status.MAX_ITER)
+
+
+_MESSAGES = {
+    Status.CONVERGED: "converged: a stopping tolerance was met",
+    Status.MAX_ITER: "stopped after the configured number of iterations without meeting a tolerance",
+    Status.NONFINITE: "stopped: NaN or inf in the energy or the step (problem masked, controls kept finite)",
+    Status.INFEASIBLE: "stopped: the constraints could not be satisfied",
+    Status.FAILED: "failed: the solver reported an error",
+}
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    """Solution of one problem or a batch of problems.
+
+    Attributes
+    ----------
+    solver: name of the solver (``"lm"``, ``"ipopt"``, ``"ilq"``).
+    controls: optimized joint strategy ``u``, ``(..., n_u)``.
+    states: rolled-out joint states ``x``, ``(..., n_x)``.
+    energy: potential ``E(u, p)`` at the solution, ``(...)``.
+    agent_costs: each agent's own game cost ``C_i``, ``(..., N)``.
+    status: :class:`Status` (one problem) or an object array of them.
+    iterations: iterations taken, ``(...)``.
+    energy_history: energy before each iteration and at the end, ``(S+1, ...)``;
+        entries after a problem stopped repeat its final value.
+    grad_norm: infinity norm of the gradient of ``E`` at the solution, ``(...)``.
+    wall_time: seconds for the whole call.
+    info: solver-specific extras (damping history, IPOPT return string, gains, ...).
+    """
+
+    solver: str
+    controls: np.ndarray
+    states: np.ndarray
+    energy: np.ndarray
+    agent_costs: np.ndarray
+    status: Any
+    iterations: np.ndarray
+    energy_history: np.ndarray
+    grad_norm: np.ndarray
+    wall_time: float
+    info: dict = field(default_factory=dict)
+
+    @property
+    def batched(self) -> bool:
+        return np.ndim(self.energy) > 0
+
+    @property
+    def ok(self):
+        """Whether each problem ended with a usable solution (converged or max_iter)."""
+        if not self.batched:
+            return self.status.ok
+        return np.vectorize(lambda s: s.ok, otypes=[bool])(self.status)
+
+    @property
+    def message(self) -> str:
+        if not self.batched:
+            return self.status.message
+        counts: dict[Status, int] = {}
+        for s in np.ravel(self.status):
+            counts[s] = counts.get(s, 0) + 1
+        return ", ".join(f"{n} {s.value}" for s, n in counts.items())
+
+    def __getitem__(self, index) -> SolveResult:
+        if not self.batched:
+            raise IndexError("this result holds a single problem")
+        kw = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "energy_history":
+                v = v[(slice(None), index) if not isinstance(index, tuple) else (slice(None), *index)]
+            elif f.name in ("solver", "wall_time"):
+                pass
+            elif f.name == "info":
+                v = {k: (a[index] if isinstance(a, np.ndarray) and a.shape[:1] == np.shape(self.energy)[:1] else a)
+                     for k, a in v.items()}
+            else:
+                v = v[index]
+            kw[f.name] = v
+        return SolveResult(**kw)
+
+    def summary(self) -> str:
+        if self.batched:
+            e = np.asarray(self.energy)
+            return (
+                f"{self.solver}: {e.size} problems, {self.message}; energy mean {e.mean():.6g}, "
+                f"iterations mean {np.mean(self.iterations):.1f}, {self.wall_time * 1e3:.1f} ms"
+            )
+        return (
+            f"{self.solver}: {self.status.value} ({self.status.message}); energy {float(self.energy):.6g}, "
+            f"{int(self.iterations)} iterations, |grad|_inf {float(self.grad_norm):.3g}, "
+            f"{self.wall_time * 1e3:.1f} ms"
+        )
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (single problem or batch)."""
+
+        def conv(v):
+            if isinstance(v, Status):
+                return v.value
+            if isinstance(v, np.ndarray):
+                if v.dtype == object:
+                    return [conv(x) for x in v.tolist()] if v.ndim else conv(v.item())
+                return v.tolist()
+            if isinstance(v, (np.floating, np.integer)):
+                return v.item()
+            if isinstance(v, dict):
+                return {k: conv(x) for k, x in v.items()}
+            if isinstance(v, (list, tuple)):
+                return [conv(x) for x in v]
+            return v
+
+        d = {f.name: conv(getattr(self, f.name)) for f in fields(self)}
+        d["message"] = self.message
+        return d

@@ -1,0 +1,4 @@
+import os
+
+os.environ.setdefault("EPO_THREADS", "1")
+os.environ.setdefault("MPLBACKEND", "Agg")
