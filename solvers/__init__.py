@@ -3,7 +3,12 @@
 No torch here. Every solver returns :class:`solvers.result.SolveResult`.
 """
 
+from .ipopt import IpoptOptions, IpoptSolver, solve_ipopt
 from .lm import LMOptions, solve_lm
+from .nash import NashCertificate, NashOptions, nash_certificate
 from .result import SolveResult, Status
 
-__all__ = ["LMOptions", "SolveResult", "Status", "solve_lm"]
+__all__ = [
+    "IpoptOptions", "IpoptSolver", "LMOptions", "NashCertificate", "NashOptions", "SolveResult",
+    "Status", "nash_certificate", "solve_ipopt", "solve_lm",
+]

@@ -85,6 +85,15 @@ class LMOptions:
         _pos("damping_up", self.damping_up)
         _pos("damping_down", self.damping_down)
         _pos("gtol", self.gtol, allow_zero=True)
+        _pos("min_damping", self.min_damping, allow_zero=True)
+        _pos("max_damping", self.max_damping)
+        if not self.damping_up > 1 or not self.damping_down < 1:
+            raise SpecError("lm.damping_up/damping_down", f"expected damping_up > 1 and damping_down < 1, got {self.damping_up}, {self.damping_down}")
+        for name in ("adaptive_damping", "ellipsoidal"):
+            if not isinstance(getattr(self, name), bool):
+                raise SpecError(f"lm.{name}", f"expected true or false, got {getattr(self, name)!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
+            raise SpecError("lm.threads", f"expected an integer >= 1 or null, got {self.threads!r}")
         _pos("ftol", self.ftol, allow_zero=True)
         if self.backend not in ("dense", "structured"):
             raise SpecError("lm.backend", f"expected 'dense' or 'structured', got {self.backend!r}")
@@ -140,8 +149,14 @@ class DenseGN:
             L = np.linalg.cholesky(A)
             y = np.linalg.solve(L, rhs[..., None])
             return np.linalg.solve(L.transpose(0, 2, 1), y)[..., 0]
-        except np.linalg.LinAlgError:
-            return np.linalg.solve(A, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # one bad problem must not fail the batch
+            out = np.full_like(rhs, np.nan)
+            for b in range(A.shape[0]):
+                try:
+                    out[b] = np.linalg.solve(A[b], rhs[b])
+                except np.linalg.LinAlgError:
+                    pass  # stays NaN: solve_lm marks the problem NONFINITE
+            return out
 
 
 def make_backend(game: PotentialGame, options: LMOptions):
@@ -166,6 +181,13 @@ def solve_lm(
     with status ``NONFINITE``; the other problems continue unaffected.
     """
     opts = check_options(LMOptions, options, "lm")
+    # Non-finite values are detected and masked per problem below; numpy's overflow and
+    # invalid-value warnings would only duplicate that (and fail under warnings-as-errors).
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return _solve_lm(game, p, u0, opts, backend)
+
+
+def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
     t0 = time.perf_counter()
     single = np.ndim(p) == 1 and (u0 is None or np.ndim(u0) == 1)
     U, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)

@@ -8,6 +8,7 @@ problem of a batch. Shapes follow the contract in :mod:`epo_casadi.game`.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -131,13 +132,15 @@ class SolveResult:
         """JSON-ready dictionary (single problem or batch)."""
 
         def conv(v):
-            if isinstance(v, Status):
+            if isinstance(v, enum.Enum):
                 return v.value
+            if dataclasses.is_dataclass(v) and not isinstance(v, type):
+                return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
             if isinstance(v, np.ndarray):
                 if v.dtype == object:
                     return [conv(x) for x in v.tolist()] if v.ndim else conv(v.item())
                 return v.tolist()
-            if isinstance(v, (np.floating, np.integer)):
+            if isinstance(v, (np.floating, np.integer, np.bool_)):
                 return v.item()
             if isinstance(v, dict):
                 return {k: conv(x) for k, x in v.items()}

@@ -1,0 +1,363 @@
+"""IPOPT on the potential ``E(u, p) = 1/2 ||r(u, p)||^2`` (reference solver).
+
+A second, independent way to minimize the potential of a :class:`~epo_casadi.game.PotentialGame`
+(the other is :func:`solvers.lm.solve_lm`): an interior-point method on the NLP ::
+
+    min_u  E(u, p)
+    s.t.   lower_i <= u_{i,k}   <= upper_i        (control_bounds, hard, every k = 0..K-1)
+           lower_i <= x_{i,k}   <= upper_i        (state_bounds, hard, every k = 1..K)
+
+with the exact Hessian of the Lagrangian (``hessian="exact"``) or the Gauss-Newton
+matrix ``J'J`` of the objective plus the exact curvature of the state constraints
+(``hessian="gn"``). The NLP is built once per game and :class:`IpoptOptions` by
+:class:`IpoptSolver`; :func:`solve_ipopt` is the entry function and keeps one solver
+per ``(game, options)``, cached on the game. The parameters ``p`` are the NLP parameter
+``'p'``, so changing ``p`` never rebuilds anything. Shapes and index order follow
+:mod:`epo_casadi.game`; IPOPT solves one problem at a time, a batch ``(B, n)`` is a
+loop over its problems.
+
+Without bounds the solution is a local minimizer of ``E`` and hence (paper Theorem 1) a local
+open-loop Nash equilibrium; check it with :func:`solvers.nash.nash_certificate`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+from .batch import BatchFunction
+from .lm import check_options
+from .result import SolveResult, Status
+
+__all__ = ["IpoptOptions", "IpoptSolver", "solve_ipopt", "ipopt_status"]
+
+Bounds = tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...]
+
+_STATUS = {
+    "Solve_Succeeded": Status.CONVERGED,
+    "Solved_To_Acceptable_Level": Status.CONVERGED,
+    "Maximum_Iterations_Exceeded": Status.MAX_ITER,
+    "Infeasible_Problem_Detected": Status.INFEASIBLE,
+    "Invalid_Number_Detected": Status.NONFINITE,
+}
+
+
+def ipopt_status(return_status: str) -> Status:
+    """:class:`Status` of an IPOPT ``return_status`` string (unknown strings: ``FAILED``)."""
+    return _STATUS.get(return_status, Status.FAILED)
+
+
+def _bound_value(v, where: str, default: float) -> float:
+    if v is None:
+        return default
+    if (
+        isinstance(v, bool)
+        or not isinstance(v, (int, float, np.floating, np.integer))
+        or math.isnan(v)
+    ):
+        raise SpecError(where, f"expected a number, inf or None, got {v!r}")
+    return float(v)
+
+
+def _normalize_bounds(value, where: str) -> Bounds | None:
+    """``{agent: (lower, upper)}`` -> ``((agent, lower, upper), ...)`` sorted by name."""
+    if value is None:
+        return None
+    if isinstance(value, tuple) and all(isinstance(e, tuple) and len(e) == 3 for e in value):
+        value = {name: (lo, hi) for name, lo, hi in value}  # already normalized
+    if not isinstance(value, Mapping):
+        raise SpecError(
+            where,
+            f"expected a mapping agent name -> (lower list, upper list), got {type(value).__name__}",
+        )
+    out = []
+    for name, pair in value.items():
+        w = f"{where}[{name!r}]"
+        if not isinstance(name, str):
+            raise SpecError(where, f"expected agent names as keys, got {name!r}")
+        if not isinstance(pair, Sequence) or isinstance(pair, str) or len(pair) != 2:
+            raise SpecError(w, f"expected a pair (lower list, upper list), got {pair!r}")
+        lo_in, hi_in = pair
+        if (
+            not isinstance(lo_in, Sequence)
+            or not isinstance(hi_in, Sequence)
+            or isinstance(lo_in, str)
+            or isinstance(hi_in, str)
+        ):
+            raise SpecError(
+                w, f"expected two lists of numbers (None or inf for no bound), got {pair!r}"
+            )
+        if len(lo_in) != len(hi_in):
+            raise SpecError(
+                w, f"lower and upper lists differ in length: {len(lo_in)} and {len(hi_in)}"
+            )
+        lo = tuple(_bound_value(v, f"{w}.lower[{c}]", -math.inf) for c, v in enumerate(lo_in))
+        hi = tuple(_bound_value(v, f"{w}.upper[{c}]", math.inf) for c, v in enumerate(hi_in))
+        for c, (a, b) in enumerate(zip(lo, hi, strict=True)):
+            if not a <= b:
+                raise SpecError(w, f"entry {c}: expected lower <= upper, got {a} > {b}")
+        out.append((name, lo, hi))
+    return tuple(sorted(out))
+
+
+@dataclass(frozen=True)
+class IpoptOptions:
+    """IPOPT options (defaults: a tight unconstrained solve of the potential).
+
+    ``control_bounds`` and ``state_bounds`` map an agent name to ``(lower, upper)``, two
+    lists with one entry per control (``nu_i``) or state (``nx_i``) component in the order
+    of :mod:`epo_casadi.dynamics`; ``None`` or ``inf`` means unbounded. They are stored
+    normalized as a sorted tuple of ``(name, lower, upper)``. IPOPT keeps bounds up to its
+    ``bound_relax_factor`` (about ``1e-8``).
+    """
+
+    max_iter: int = 500  #: maximum number of IPOPT iterations
+    tol: float = 1e-8  #: IPOPT's (scaled) overall convergence tolerance
+    acceptable_tol: float = 1e-6  #: tolerance of the "acceptable" stop
+    acceptable_iter: int = 15  #: acceptable iterations in a row before stopping there (0 disables)
+    print_level: int = 0  #: IPOPT output verbosity, 0 (silent) to 12
+    hessian: str = (
+        "exact"  #: "exact" (Hessian of the Lagrangian) or "gn" (J'J + constraint curvature)
+    )
+    control_bounds: Bounds | Mapping | None = None  #: hard bounds on u_{i,k}, per agent
+    state_bounds: Bounds | Mapping | None = None  #: hard bounds on x_{i,k}, k = 1..K, per agent
+    linear_solver: str = "mumps"  #: IPOPT linear solver (the CasADi wheel ships "mumps")
+
+    def __post_init__(self):
+        for name in ("max_iter", "acceptable_iter"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise SpecError(f"ipopt.{name}", f"expected an integer >= 0, got {v!r}")
+        for name in ("tol", "acceptable_tol"):
+            v = getattr(self, name)
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not math.isfinite(v)
+                or v <= 0
+            ):
+                raise SpecError(f"ipopt.{name}", f"expected a finite number > 0, got {v!r}")
+        pl = self.print_level
+        if isinstance(pl, bool) or not isinstance(pl, int) or not 0 <= pl <= 12:
+            raise SpecError("ipopt.print_level", f"expected an integer 0..12, got {pl!r}")
+        if self.hessian not in ("exact", "gn"):
+            raise SpecError("ipopt.hessian", f"expected 'exact' or 'gn', got {self.hessian!r}")
+        if not isinstance(self.linear_solver, str) or not self.linear_solver:
+            raise SpecError(
+                "ipopt.linear_solver", f"expected a solver name, got {self.linear_solver!r}"
+            )
+        object.__setattr__(
+            self, "control_bounds", _normalize_bounds(self.control_bounds, "ipopt.control_bounds")
+        )
+        object.__setattr__(
+            self, "state_bounds", _normalize_bounds(self.state_bounds, "ipopt.state_bounds")
+        )
+
+
+class IpoptSolver:
+    """The potential's NLP for one game and one :class:`IpoptOptions`, built once.
+
+    ``solver.solve(p, u0)`` solves one problem or a batch (a loop); the NLP itself is the
+    ``nlpsol`` attribute (a :class:`casadi.Function`), with parameter ``p`` = the game's
+    parameter vector.
+    """
+
+    def __init__(self, game: PotentialGame, options: IpoptOptions | dict | None = None):
+        if not isinstance(game, PotentialGame):
+            raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+        self.game = game
+        self.options = opts = check_options(IpoptOptions, options, "ipopt")
+        sym = game.symbols
+        u, p, x, E = sym["u"], sym["p"], sym["x"], sym["E"]
+
+        # control bounds -> lbx / ubx (K copies of the per-agent bounds)
+        self.lbx = np.full(game.n_u, -np.inf)
+        self.ubx = np.full(game.n_u, np.inf)
+        for i, lo, hi in self._bounds(opts.control_bounds, game.nu, "control_bounds"):
+            sl = slice(int(game.uoff[i]), int(game.uoff[i + 1]))
+            self.lbx[sl] = np.tile(lo, game.K)
+            self.ubx[sl] = np.tile(hi, game.K)
+
+        # state bounds -> g = the bounded entries of the rolled-out states, k = 1..K
+        rows, lbg, ubg = [], [], []
+        for i, lo, hi in self._bounds(opts.state_bounds, game.nx, "state_bounds"):
+            for k in range(1, game.K + 1):
+                for c in range(game.nx[i]):
+                    if np.isfinite(lo[c]) or np.isfinite(hi[c]):
+                        rows.append(int(game.xoff[i]) + k * game.nx[i] + c)
+                        lbg.append(lo[c])
+                        ubg.append(hi[c])
+        self.state_rows = np.asarray(rows, dtype=int)
+        self.lbg = np.asarray(lbg, dtype=float)
+        self.ubg = np.asarray(ubg, dtype=float)
+        g = x[rows] if rows else ca.SX(0, 1)
+
+        nlp_opts = {
+            "print_time": False,
+            "error_on_fail": False,
+            "show_eval_warnings": opts.print_level > 0,
+            "ipopt.print_level": opts.print_level,
+            "ipopt.sb": "yes",
+            "ipopt.max_iter": opts.max_iter,
+            "ipopt.tol": opts.tol,
+            "ipopt.acceptable_tol": opts.acceptable_tol,
+            "ipopt.acceptable_iter": opts.acceptable_iter,
+            "ipopt.linear_solver": opts.linear_solver,
+        }
+        if opts.hessian == "gn":
+            lam_f = ca.SX.sym("lam_f")
+            lam_g = ca.SX.sym("lam_g", g.shape[0])
+            J = ca.jacobian(sym["r"], u)
+            H = lam_f * ca.mtimes(J.T, J)
+            if rows:
+                H = H + ca.hessian(ca.dot(lam_g, g), u)[0]
+            nlp_opts["hess_lag"] = ca.Function(
+                "gn_hess_lag",
+                [u, p, lam_f, lam_g],
+                [ca.triu(H)],
+                ["x", "p", "lam_f", "lam_g"],
+                ["triu_hess_gamma_x_x"],
+            )
+        self.nlpsol = ca.nlpsol("epo_ipopt", "ipopt", {"x": u, "p": p, "f": E, "g": g}, nlp_opts)
+        self._rollout = BatchFunction(game.function("rollout"))
+        self._costs = BatchFunction(game.function("agent_costs"))
+        self._grad = BatchFunction(game.function("gradient"))
+        self._energy = BatchFunction(game.function("energy"))
+
+    def _bounds(self, bounds: Bounds | None, sizes: list[int], field: str):
+        names = self.game.agent_names
+        for name, lo, hi in bounds or ():
+            where = f"ipopt.{field}[{name!r}]"
+            if name not in names:
+                raise SpecError(where, f"unknown agent; expected one of {names}")
+            i = names.index(name)
+            if len(lo) != sizes[i]:
+                raise SpecError(
+                    where, f"expected {sizes[i]} entries per list for agent {name!r}, got {len(lo)}"
+                )
+            yield i, np.asarray(lo, float), np.asarray(hi, float)
+
+    def _solve_one(self, u0: np.ndarray, p: np.ndarray) -> dict:
+        try:
+            sol = self.nlpsol(x0=u0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
+            st = self.nlpsol.stats()
+        except RuntimeError as e:  # evaluation error at the initial point etc.
+            return {
+                "u": u0.copy(),
+                "return_status": f"Error: {e}".splitlines()[0],
+                "iter": 0,
+                "history": [],
+                "lam_x": np.zeros_like(u0),
+                "lam_g": np.zeros(self.lbg.size),
+            }
+        u = np.asarray(sol["x"], dtype=float).reshape(-1)
+        hist = list(st.get("iterations", {}).get("obj", []))
+        return {
+            "u": u,
+            "return_status": str(st.get("return_status", "unknown")),
+            "iter": int(st.get("iter_count", 0)),
+            "history": hist,
+            "lam_x": np.asarray(sol["lam_x"], dtype=float).reshape(-1),
+            "lam_g": np.asarray(sol["lam_g"], dtype=float).reshape(-1),
+        }
+
+    def solve(self, p: np.ndarray, u0: np.ndarray | None = None) -> SolveResult:
+        """Solve for ``p`` (``(n_p,)`` or ``(B, n_p)``) from ``u0`` (zeros if None).
+
+        ``energy_history`` holds IPOPT's objective at every iterate (the first entry is
+        the start after IPOPT moved it inside the bounds); a shorter run repeats its
+        final value. ``info``: ``return_status`` (IPOPT's string), ``lam_x`` and
+        ``lam_g`` (bound and constraint multipliers), ``max_violation`` (largest bound
+        or state-constraint violation at the solution), ``options``.
+        """
+        game = self.game
+        t0 = time.perf_counter()
+        single = np.ndim(p) == 1 and (u0 is None or np.ndim(u0) == 1)
+        U0, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)
+        runs = [self._solve_one(U0[b], P[b]) for b in range(U0.shape[0])]
+        U = np.stack([r["u"] for r in runs])
+        X = self._rollout(U, P)[0]
+        C = self._costs(U, P)[0]
+        G = self._grad(U, P)[0]
+        E = self._energy(U, P)[0][:, 0]
+        status = np.empty(len(runs), dtype=object)
+        for b, r in enumerate(runs):
+            status[b] = ipopt_status(r["return_status"])
+            if status[b] is Status.CONVERGED and not np.isfinite(E[b]):
+                status[b] = Status.NONFINITE
+        S = max(len(r["history"]) for r in runs)
+        S = max(S, 1)
+        hist = np.empty((S, len(runs)))
+        for b, r in enumerate(runs):
+            h = list(r["history"]) or [E[b]]
+            hist[:, b] = h + [h[-1]] * (S - len(h))
+        viol = (
+            np.maximum(np.maximum(self.lbx - U, U - self.ubx), 0.0).max(axis=1)
+            if game.n_u
+            else np.zeros(len(runs))
+        )
+        if self.state_rows.size:
+            xs = X[:, self.state_rows]
+            viol = np.maximum(
+                viol, np.maximum(np.maximum(self.lbg - xs, xs - self.ubg), 0.0).max(axis=1)
+            )
+        res = SolveResult(
+            solver="ipopt",
+            controls=U,
+            states=X,
+            energy=E,
+            agent_costs=C,
+            status=status,
+            iterations=np.array([r["iter"] for r in runs], dtype=int),
+            energy_history=hist,
+            grad_norm=np.max(np.abs(G), axis=1) if game.n_u else np.zeros(len(runs)),
+            wall_time=time.perf_counter() - t0,
+            info={
+                "return_status": np.array([r["return_status"] for r in runs], dtype=object),
+                "lam_x": np.stack([r["lam_x"] for r in runs]),
+                "lam_g": np.stack([r["lam_g"] for r in runs]),
+                "max_violation": viol,
+                "options": self.options,
+            },
+        )
+        return res[0] if single else res
+
+
+def _solver_for(game: PotentialGame, opts: IpoptOptions) -> IpoptSolver:
+    # Kept on the game itself, so the solvers live exactly as long as the game (a module
+    # level WeakKeyDictionary would not work: its values refer back to the game).
+    per_game = game.__dict__.setdefault("_ipopt_solvers", {})
+    if opts not in per_game:
+        per_game[opts] = IpoptSolver(game, opts)
+    return per_game[opts]
+
+
+def solve_ipopt(
+    game: PotentialGame,
+    p: np.ndarray,
+    u0: np.ndarray | None = None,
+    options: IpoptOptions | dict | None = None,
+) -> SolveResult:
+    """Minimize the potential of ``game`` with IPOPT, for one problem or a batch.
+
+    ``p``: ``(n_p,)`` or ``(B, n_p)``; ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if None),
+    the warm start. ``options``: :class:`IpoptOptions` or a dict of its fields (unknown
+    keys raise :class:`~epo_casadi.errors.SpecError`). The NLP is built on the first call
+    for a ``(game, options)`` pair and reused afterwards. Status: ``Solve_Succeeded`` and
+    ``Solved_To_Acceptable_Level`` -> ``CONVERGED``, ``Maximum_Iterations_Exceeded`` ->
+    ``MAX_ITER``, ``Infeasible_Problem_Detected`` -> ``INFEASIBLE``,
+    ``Invalid_Number_Detected`` -> ``NONFINITE``, anything else -> ``FAILED``; IPOPT's
+    string is ``result.info["return_status"]``.
+    """
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    opts = check_options(IpoptOptions, options, "ipopt")
+    return _solver_for(game, opts).solve(p, u0)

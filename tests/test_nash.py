@@ -1,0 +1,155 @@
+"""Local open-loop Nash certificate (solvers.nash) and the game structure it relies on."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from epo_casadi import SpecError
+from solvers.ipopt import solve_ipopt
+from solvers.lm import solve_lm
+from solvers.nash import NashOptions, nash_certificate
+
+from .helpers import crossing_game
+
+
+def close_start_params(g):
+    """Parameters of a 3-agent crossing game with the agents starting within 0.3 m."""
+    return g.params.pack(
+        {
+            "x0.a0": [0.0, 0.0, 1.0, 0.0],
+            "x0.a1": [0.2, 0.1, 1.0, 2.0],
+            "x0.a2": [-0.1, 0.2, 1.0, 4.0],
+            "w.a0-a2.collision": 3.0,
+        }
+    )
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    """Crossing game, its parameters and the potential minimizer (collision term active)."""
+    g = crossing_game(offset=0.3)
+    p = g.default_params()
+    u0 = g.join_controls([np.tile([1.0, 0.0], (g.K, 1)) for _ in range(g.N)])
+    sol = solve_ipopt(g, p, u0)
+    assert sol.status.ok
+    coll = next(t.index for t in g.terms if t.feature_type == "collision")
+    assert float(g.function("term_energies")(sol.controls, p)[coll]) > 1e-3  # agents interact
+    return g, p, u0, sol
+
+
+def test_potential_minimizer_certifies(crossing):
+    g, p, u0, ip = crossing
+    lm = solve_lm(g, p, u0)
+    for u in (ip.controls, lm.controls):
+        cert = nash_certificate(g, u, p)
+        assert cert.ok
+        assert cert.agents == ("a0", "a1")
+        assert np.all(cert.best_response_gap >= 0)
+        assert np.all(cert.best_response_gap <= 1e-8)
+        assert np.all(cert.stationarity <= 1e-4)
+        assert cert.best_response_status == ("Solve_Succeeded", "Solve_Succeeded")
+        np.testing.assert_allclose(cert.costs, np.asarray(g.function("agent_costs")(u, p)).ravel())
+
+
+def test_perturbed_agent_is_flagged(crossing):
+    g, p, _, sol = crossing
+    rng = np.random.default_rng(3)
+    u = sol.controls.copy()
+    a, b = g.uoff[1], g.uoff[2]
+    u[a:b] += 0.2 * rng.standard_normal(b - a)
+    cert = nash_certificate(g, u, p)
+    assert not cert.ok
+    assert not cert.stat_ok[1] and not cert.gap_ok[1]
+    assert cert.stationarity[1] > 0.1
+    assert cert.best_response_gap[1] > 0.1
+    assert cert.best_response_gap[1] > 5 * cert.best_response_gap[0]
+    # agent 0 still plays its equilibrium strategy, so agent 1's best response to it
+    # recovers agent 1's equilibrium cost
+    c_star = np.asarray(g.function("agent_costs")(sol.controls, p)).ravel()
+    assert cert.best_response_costs[1] == pytest.approx(c_star[1], rel=1e-7)
+    assert "FAILS" in cert.summary()
+
+
+def test_pseudo_gradient_is_gradient_of_potential():
+    """Theorem 1: for the potential game, (dC_i/du_i)_i = dE/du at any u."""
+    g = crossing_game(N=3, K=8, offset=0.2)
+    p = close_start_params(g)
+    rng = np.random.default_rng(4)
+    costs = g.function("agent_costs")
+    for _ in range(3):
+        u = rng.normal(0.5, 0.6, g.n_u)
+        e = np.asarray(g.function("term_energies")(u, p)).ravel()
+        assert all(e[t.index] > 0 for t in g.terms if t.kind == "pair")  # coupling active
+        pg = np.asarray(g.function("pseudo_gradient")(u, p)).ravel()
+        grad = np.asarray(g.function("gradient")(u, p)).ravel()
+        np.testing.assert_allclose(pg, grad, rtol=1e-10, atol=1e-10)
+        # independent reference: central differences of C_i in agent i's own controls
+        fd = np.zeros(g.n_u)
+        h = 1e-6
+        for i in range(g.N):
+            for j in range(g.uoff[i], g.uoff[i + 1]):
+                e = np.zeros(g.n_u)
+                e[j] = h
+                fd[j] = (float(costs(u + e, p)[i]) - float(costs(u - e, p)[i])) / (2 * h)
+        np.testing.assert_allclose(pg, fd, atol=1e-5 * (1 + np.abs(pg).max()))
+
+
+def test_agent_costs_from_terms_by_hand():
+    """Non-potential bookkeeping: C_i = energies of i's own terms + pair terms with i."""
+    g = crossing_game(N=3, K=8, offset=0.2)
+    p = close_start_params(g)
+    rng = np.random.default_rng(5)
+    u = rng.normal(0.5, 0.6, g.n_u)
+    r = np.asarray(g.function("residual")(u, p)).ravel()
+    e = np.array([0.5 * np.sum(r[t.rows] ** 2) for t in g.terms])
+    np.testing.assert_allclose(np.asarray(g.function("term_energies")(u, p)).ravel(), e, rtol=1e-12)
+    assert all(e[t.index] > 0 for t in g.terms if t.kind == "pair")  # pairs really contribute
+    by_hand = np.array(
+        [sum(e[t.index] for t in g.terms if name in t.agents) for name in g.agent_names]
+    )
+    np.testing.assert_allclose(
+        np.asarray(g.function("agent_costs")(u, p)).ravel(), by_hand, rtol=1e-12
+    )
+    # the pair terms are counted once in E and once per agent in the costs
+    pair = sum(e[t.index] for t in g.terms if t.kind == "pair")
+    assert by_hand.sum() == pytest.approx(float(g.function("energy")(u, p)) + pair, rel=1e-12)
+
+
+def test_stationarity_only_and_outputs(crossing):
+    g, p, _, sol = crossing
+    cert = nash_certificate(g, sol.controls, p, {"best_response": False})
+    assert cert.ok
+    assert cert.options == NashOptions(best_response=False)
+    assert cert.best_response_status == ("skipped", "skipped")
+    np.testing.assert_array_equal(cert.best_response_gap, 0.0)
+    d = json.loads(json.dumps(cert.to_dict()))
+    assert d["ok"] is True and d["agents"] == ["a0", "a1"] and len(d["stationarity"]) == 2
+    assert d["options"]["best_response"] is False
+    text = cert.summary()
+    assert "a0" in text and "a1" in text and "passes" in text
+
+
+@pytest.mark.parametrize(
+    "options, field",
+    [
+        ({"gap": 1e-3}, "nash"),
+        ({"stat_tol": 0.0}, "nash.stat_tol"),
+        ({"max_iter": -1}, "nash.max_iter"),
+        ({"best_response": 1}, "nash.best_response"),
+    ],
+)
+def test_bad_options_raise(crossing, options, field):
+    g, p, _, sol = crossing
+    with pytest.raises(SpecError) as e:
+        nash_certificate(g, sol.controls, p, options)
+    assert e.value.field == field
+
+
+def test_one_problem_only(crossing):
+    g, p, _, sol = crossing
+    with pytest.raises(SpecError) as e:
+        nash_certificate(g, np.stack([sol.controls, sol.controls]), p)
+    assert e.value.field == "u/p"
