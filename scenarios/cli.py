@@ -9,11 +9,16 @@ the field and exit with status 2, without a traceback.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
-import click
+# Small dense solves (a few hundred unknowns) are slower with threaded BLAS on a busy
+# machine; our batching parallelizes over problems instead. Set before numpy loads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from epo_casadi.errors import EpoError
+import click  # noqa: E402
+
+from epo_casadi.errors import EpoError  # noqa: E402
 
 # name -> "module:attribute" of a click command or group
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -59,7 +64,7 @@ def cli():
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: runs the CLI, turns toolkit errors into one-line messages."""
     try:
-        cli.main(args=argv, prog_name="epo", standalone_mode=False)
+        rc = cli.main(args=argv, prog_name="epo", standalone_mode=False)
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         return 130
@@ -75,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
         return 130
-    return 0
+    return rc if isinstance(rc, int) else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,4 +1,5 @@
 import os
 
 os.environ.setdefault("EPO_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")

@@ -1,0 +1,281 @@
+"""``epo solve GAME.yaml``: solve a game file with LM or IPOPT, certify, write JSON.
+
+The result file (``--out``) is one JSON object, documented in
+``docs/sections/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
+(``(K, nu_i)``), ``energy``, ``agent_costs``, the local Nash ``certificate``, ``status``,
+``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
+``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+RESULT_FORMAT = "epo-result/1"
+
+__all__ = [
+    "solve",
+    "run_solve",
+    "result_dict",
+    "energy_history",
+    "write_result",
+    "read_result",
+    "RESULT_FORMAT",
+]
+
+
+def _jsonable(v: Any) -> Any:
+    """Plain JSON values; non-finite floats become ``None`` (strict JSON has no inf/NaN)."""
+    if is_dataclass(v) and not isinstance(v, type):
+        return _jsonable(asdict(v))
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, (np.bool_, bool)):
+        return bool(v)
+    if isinstance(v, (np.integer, int)):
+        return int(v)
+    if isinstance(v, (np.floating, float)):
+        v = float(v)
+        return v if math.isfinite(v) else None
+    if hasattr(v, "value") and hasattr(v, "message"):  # solvers.result.Status
+        return v.value
+    return v
+
+
+def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, certify: bool = True):
+    """Solve one problem with ``solver`` (``"lm"``/``"ipopt"``); return ``(result, certificate)``."""
+    if solver == "lm":
+        from solvers.lm import solve_lm
+
+        res = solve_lm(game, p, options=options)
+    elif solver == "ipopt":
+        from solvers.ipopt import solve_ipopt
+
+        res = solve_ipopt(game, p, options=options)
+    else:
+        raise SpecError("--solver", f"expected 'lm' or 'ipopt', got {solver!r}")
+    cert = None
+    if certify:
+        from solvers.nash import nash_certificate
+
+        cert = nash_certificate(game, res.controls, p)
+    return res, cert
+
+
+def result_dict(
+    game: PotentialGame, p: np.ndarray, res, cert=None, source: str | None = None
+) -> dict:
+    """The JSON object of one solve (see the module docstring)."""
+    names = game.agent_names
+    X = game.split_states(res.states)
+    U = game.split_controls(res.controls)
+    blocks = game.params.unpack(np.asarray(p, dtype=float))
+    return _jsonable(
+        {
+            "format": RESULT_FORMAT,
+            "game": source,
+            "solver": res.solver,
+            "status": res.status,
+            "ok": bool(res.ok),
+            "message": res.message,
+            "iterations": int(res.iterations),
+            "time_s": float(res.wall_time),
+            "energy": float(res.energy),
+            "grad_norm": float(res.grad_norm),
+            "horizon": game.K,
+            "dt": game.dt,
+            "agents": names,
+            "agent_costs": {a: float(c) for a, c in zip(names, res.agent_costs, strict=True)},
+            "state_names": {a.name: list(a.dynamics.state_names) for a in game.agents},
+            "control_names": {a.name: list(a.dynamics.control_names) for a in game.agents},
+            "states": {a: X[i] for i, a in enumerate(names)},
+            "controls": {a: U[i] for i, a in enumerate(names)},
+            "params": blocks,
+            "energy_history": energy_history(res),
+            "certificate": cert.to_dict() if cert is not None else None,
+            "options": res.info.get("options"),
+        }
+    )
+
+
+def energy_history(res) -> np.ndarray:
+    """Energy before each iteration and at the end, without the padding after the stop."""
+    h = np.asarray(res.energy_history, dtype=float).reshape(-1)
+    n = int(res.iterations) + 1
+    return h[:n] if h.size > n else h
+
+
+def write_result(data: dict, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # one line per top-level key: readable, and far shorter than an indented dump
+    body = ",\n".join(
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in data.items()
+    )
+    path.write_text("{\n" + body + "\n}\n", encoding="utf-8")
+    return path
+
+
+def read_result(path: str | Path, game: PotentialGame) -> tuple[np.ndarray, np.ndarray]:
+    """Controls ``u`` and parameters ``p`` of a result file written for ``game``.
+
+    Raises :class:`SpecError` naming the entry when the file does not fit the game.
+    """
+    path = Path(path)
+    where = path.name
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise SpecError(
+            where, f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}"
+        ) from None
+    if not isinstance(data, dict) or data.get("format") != RESULT_FORMAT:
+        raise SpecError(f"{where}.format", f"expected an 'epo solve' result ({RESULT_FORMAT!r})")
+    if data.get("agents") != game.agent_names:
+        raise SpecError(
+            f"{where}.agents",
+            f"expected the agents {game.agent_names} of the game, got {data.get('agents')}",
+        )
+    ctrl = data.get("controls")
+    if not isinstance(ctrl, dict):
+        raise SpecError(f"{where}.controls", "expected a mapping agent -> (K, nu) controls")
+    parts = []
+    for i, a in enumerate(game.agent_names):
+        try:
+            arr = np.asarray(ctrl.get(a), dtype=float)
+        except (TypeError, ValueError):
+            raise SpecError(
+                f"{where}.controls.{a}", "expected a list of lists of numbers"
+            ) from None
+        if arr.shape != (game.K, game.nu[i]):
+            raise SpecError(
+                f"{where}.controls.{a}", f"expected shape ({game.K}, {game.nu[i]}), got {arr.shape}"
+            )
+        parts.append(arr)
+    u = game.join_controls(parts)
+    params = data.get("params")
+    if not isinstance(params, dict):
+        raise SpecError(f"{where}.params", "expected a mapping block name -> values")
+    try:
+        p = game.params.pack(params)
+    except SpecError as e:
+        raise SpecError(f"{where}.{e.field}", e.message) from None
+    if not np.all(np.isfinite(u)):
+        raise SpecError(f"{where}.controls", "contains NaN or inf")
+    return u, p
+
+
+def summary_lines(game: PotentialGame, data: dict) -> list[str]:
+    costs = ", ".join(f"{a} {c:.6g}" for a, c in data["agent_costs"].items())
+    lines = [
+        f"{data['solver']}: {data['status']} ({data['message']})",
+        f"  energy {data['energy']:.6g} after {data['iterations']} iterations in {data['time_s']:.3g} s;"
+        f" |grad|_inf {data['grad_norm']:.3g}",
+        f"  agent costs: {costs}",
+    ]
+    c = data.get("certificate")
+    if c is not None:
+        lines.append(
+            f"  Nash certificate: {'passes' if c['ok'] else 'FAILS'} (max |dC_i/du_i| "
+            f"{max(c['stationarity']):.3g}, max best-response gap {max(c['best_response_gap']):.3g})"
+        )
+    return lines
+
+
+@click.command("solve")
+@click.argument("game_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--solver",
+    type=click.Choice(["lm", "ipopt"]),
+    default="lm",
+    show_default=True,
+    help="Levenberg-Marquardt or IPOPT.",
+)
+@click.option(
+    "--steps",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Iteration limit (LM steps / IPOPT max_iter); overrides the file's solver options.",
+)
+@click.option(
+    "--set",
+    "settings",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="Replace a parameter, e.g. --set w.a0-a1.collision=50 --set goal.a0=3,0.5 (repeatable).",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write the result as JSON here.",
+)
+@click.option(
+    "--plot",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write a trajectory figure (PNG) here.",
+)
+@click.option(
+    "--certificate/--no-certificate",
+    default=True,
+    show_default=True,
+    help="Compute the local Nash certificate (a best-response solve per agent).",
+)
+def solve(
+    game_file: Path,
+    solver: str,
+    steps: int | None,
+    settings: tuple[str, ...],
+    out: Path | None,
+    plot: Path | None,
+    certificate: bool,
+):
+    """Solve GAME_FILE (YAML or JSON game file) and print a short summary."""
+    from scenarios.gamefile import apply_settings, load_game
+
+    t0 = time.perf_counter()
+    gf = load_game(game_file)
+    game = gf.game
+    p = apply_settings(game, gf.params, settings)
+    over = {} if steps is None else {("steps" if solver == "lm" else "max_iter"): steps}
+    opts = gf.options(solver, **over)
+    res, cert = run_solve(game, p, solver, opts, certify=certificate)
+    data = result_dict(game, p, res, cert, source=str(game_file))
+    click.echo(
+        f"{game_file}: {game.N} agents, K = {game.K}, n_u = {game.n_u}, {len(game.terms)} energy terms"
+    )
+    for line in summary_lines(game, data):
+        click.echo(line)
+    if out is not None:
+        write_result(data, out)
+        click.echo(f"wrote {out}")
+    if plot is not None:
+        from scenarios.plotting import plot_trajectories
+
+        plot_trajectories(
+            game,
+            res.states,
+            p,
+            plot,
+            title=f"{game_file.name}: {solver}, E = {float(res.energy):.4g}",
+        )
+        click.echo(f"wrote {plot}")
+    click.echo(f"total {time.perf_counter() - t0:.2f} s")
+    if not res.ok:
+        raise click.ClickException(f"the solve did not give a usable solution: {res.message}")

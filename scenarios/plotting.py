@@ -1,0 +1,213 @@
+"""Figures of games and solves (matplotlib, imported only inside these functions).
+
+Figures are built with :class:`matplotlib.figure.Figure` directly (no ``pyplot``, no
+global backend state): saving a PNG renders with Agg whatever backend is active, so
+the functions work on headless machines and inside tests. Each function returns the
+figure and writes it to ``path`` when one is given.
+
+* :func:`plot_trajectories`: positions of every agent over the horizon, agent circles
+  drawn to scale at a few time steps, initial positions, goals and reference paths.
+* :func:`plot_energy_history`: energy per iteration of one or more solves (log scale).
+* :func:`plot_sparsity`: the structural nonzeros of ``J = dr/du`` with term and agent
+  boundaries.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+__all__ = ["plot_trajectories", "plot_energy_history", "plot_sparsity", "agent_colors"]
+
+_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2")
+
+
+def agent_colors(n: int) -> list[str]:
+    """One distinct colour per agent (cycled after eight)."""
+    return [_COLORS[i % len(_COLORS)] for i in range(n)]
+
+
+def _figure(figsize):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize, dpi=110, layout="constrained")
+
+
+def _save(fig, path):
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path)
+    return fig
+
+
+def _snapshot_steps(K: int, n: int) -> list[int]:
+    n = max(2, min(n, K + 1))
+    return sorted({int(round(k)) for k in np.linspace(0, K, n)})
+
+
+def plot_trajectories(
+    game: PotentialGame,
+    x: np.ndarray,
+    p: np.ndarray | None = None,
+    path: str | Path | None = None,
+    *,
+    title: str | None = None,
+    snapshots: int = 5,
+    others: Mapping[str, np.ndarray] | None = None,
+    ax: Any = None,
+):
+    """Trajectory figure of one joint solution.
+
+    ``x``: rolled-out states ``(n_x,)`` (:mod:`epo_casadi.game` layout); ``p``: the
+    parameters used (default: the game's defaults), read for goals and paths. Each agent
+    gets a line, a filled marker at its initial position, a star at its goal, its
+    reference path dashed, and its circle (true radius) at ``snapshots`` time steps
+    evenly spread over ``0..K`` with the step number written inside. ``others`` maps a
+    label to another state vector drawn thin and dotted (e.g. a second solver).
+    ``ax``: draw into an existing axes instead of a new figure.
+    """
+    from matplotlib.patches import Circle
+
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    x = np.asarray(x, dtype=float).reshape(-1)
+    if x.size != game.n_x:
+        raise SpecError("x", f"expected {game.n_x} states (n_x), got {x.size}")
+    p = game.params.defaults() if p is None else np.asarray(p, dtype=float).reshape(-1)
+    blocks = game.params.unpack(p)
+    pos = game.positions(x)  # (N, K+1, 2)
+    # frame: trajectories and goals, a margin of the largest radius (paths may be long)
+    pts = [pos.reshape(-1, 2)]
+    for a in game.agents:
+        if f"goal.{a.name}" in blocks:
+            pts.append(blocks[f"goal.{a.name}"][None, :])
+        elif a.goal is not None:
+            pts.append(np.asarray(a.goal, dtype=float)[None, :])
+    allp = np.concatenate(pts)
+    r = max((a.radius for a in game.agents), default=0.0)
+    lo, hi = allp.min(axis=0) - r - 0.5, allp.max(axis=0) + r + 0.5
+    fig = None
+    if ax is None:
+        aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+        fig = _figure((8.0, float(np.clip(6.6 * aspect, 0.9, 7.0)) + 1.1))
+        ax = fig.add_subplot(1, 1, 1)
+    colors = agent_colors(game.N)
+    steps = _snapshot_steps(game.K, snapshots)
+    for i, a in enumerate(game.agents):
+        c = colors[i]
+        if f"path.{a.name}" in blocks:
+            poly = blocks[f"path.{a.name}"].reshape(-1, 2)
+            ax.plot(poly[:, 0], poly[:, 1], ls="--", lw=1.0, color=c, alpha=0.45, zorder=1)
+        ax.plot(pos[i, :, 0], pos[i, :, 1], "-", lw=1.8, color=c, zorder=3, label=a.name)
+        for k in steps:
+            alpha = 0.15 + 0.35 * k / max(game.K, 1)
+            ax.add_patch(
+                Circle(
+                    tuple(pos[i, k]),
+                    a.radius,
+                    facecolor=c,
+                    edgecolor=c,
+                    alpha=alpha,
+                    lw=1.0,
+                    zorder=2,
+                )
+            )
+            if a.radius > 0:
+                ax.annotate(
+                    str(k),
+                    tuple(pos[i, k]),
+                    ha="center",
+                    va="center",
+                    fontsize=6,
+                    color="black",
+                    zorder=4,
+                )
+        ax.plot(*pos[i, 0], "o", ms=7, color=c, markeredgecolor="black", zorder=5)
+        if f"goal.{a.name}" in blocks:
+            g = blocks[f"goal.{a.name}"]
+            ax.plot(g[0], g[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
+        elif a.goal is not None:
+            ax.plot(a.goal[0], a.goal[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
+    for label, xo in (others or {}).items():
+        po = game.positions(np.asarray(xo, dtype=float).reshape(-1))
+        for i in range(game.N):
+            ax.plot(
+                po[i, :, 0],
+                po[i, :, 1],
+                ls=":",
+                lw=1.2,
+                color=colors[i],
+                zorder=3,
+                label=label if i == 0 else None,
+            )
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.set_title(
+        title
+        or f"{game.N} agents, K = {game.K}, dt = {game.dt:g} s "
+        f"(o start, * goal, circles at k = {','.join(map(str, steps))})",
+        fontsize=9,
+    )
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+    if fig is None:  # drawn into the caller's axes
+        return _save(ax.figure, path)
+    return _save(fig, path)
+
+
+def plot_energy_history(
+    histories: Mapping[str, Sequence[float]] | Sequence[float],
+    path: str | Path | None = None,
+    *,
+    title: str | None = None,
+):
+    """Energy per iteration (log scale) of one history or a mapping label -> history."""
+    if not isinstance(histories, Mapping):
+        histories = {"energy": histories}
+    fig = _figure((6.0, 3.8))
+    ax = fig.add_subplot(1, 1, 1)
+    for label, h in histories.items():
+        h = np.asarray(h, dtype=float).reshape(-1)
+        ax.plot(np.arange(h.size), np.maximum(h, 1e-300), "-o", ms=2.5, lw=1.4, label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("energy E")
+    ax.grid(True, which="both", lw=0.4, alpha=0.5)
+    ax.set_title(title or "energy history", fontsize=9)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def plot_sparsity(game: PotentialGame, path: str | Path | None = None, *, title: str | None = None):
+    """Spy plot of ``J = dr/du`` with term boundaries (rows) and agent boundaries (columns)."""
+    from epo_casadi.inspect import jacobian_pattern, jacobian_sparsity
+
+    pat = jacobian_pattern(game)
+    sp = jacobian_sparsity(game)
+    fig = _figure((6.5, 7.0))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.imshow(pat, aspect="auto", cmap="Greys", interpolation="nearest")
+    for t in game.terms[1:]:
+        ax.axhline(t.rows.start - 0.5, lw=0.3, color="tab:blue", alpha=0.6)
+    for off in game.uoff[1:-1]:
+        ax.axvline(off - 0.5, lw=0.8, color="tab:red")
+    ax.set_xticks([(game.uoff[i] + game.uoff[i + 1]) / 2 for i in range(game.N)], game.agent_names)
+    ax.set_xlabel("controls u (agent-major, then time)")
+    ax.set_ylabel("residual rows r (one band per term)")
+    ax.set_title(
+        title
+        or f"J = dr/du: {sp['shape'][0]} x {sp['shape'][1]}, nnz {sp['nnz']} "
+        f"(density {sp['density']:.3f})",
+        fontsize=9,
+    )
+    return _save(fig, path)

@@ -1,0 +1,285 @@
+"""epo_casadi.inspect: term listing, energy breakdown and Jacobian sparsity, each checked
+against an independent computation (residual rows, finite differences)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from epo_casadi import AgentSpec, GameSpec, PotentialGame, SpecError
+from epo_casadi.inspect import (
+    agent_breakdown,
+    breakdown_table,
+    energy_breakdown,
+    format_steps,
+    jacobian_pattern,
+    jacobian_sparsity,
+    spy_text,
+    term_rows,
+    term_table,
+)
+
+from .helpers import crossing_game
+
+RNG = np.random.default_rng(3)
+
+
+def always_active_game() -> PotentialGame:
+    """Every feature kind and all three dynamics, with bounds and collisions chosen so that
+    every max(0, .) is active at any reasonable point: then the numeric Jacobian has
+    exactly the structural nonzeros."""
+    always = [
+        {"type": "velocity_bound", "lower": 100.0},  # speed < 100: active
+        {"type": "acceleration_bound", "upper": -100.0},  # a > -100: active
+    ]
+    uni = AgentSpec(
+        "uni",
+        "unicycle",
+        [
+            "goal",
+            "velocity",
+            "acceleration",
+            "jerk",
+            "turn_rate",
+            "turn_acceleration",
+            {"type": "reference_velocity", "weight": 0.5},
+            *always,
+            {"type": "turn_rate_bound", "lower": 100.0},
+        ],
+        radius=50.0,
+        x0=[0.0, 0.0, 1.5, 0.3],
+        goal=[3.0, 1.0],
+        vref=1.0,
+    )
+    bic = AgentSpec(
+        "bic",
+        {"type": "bicycle", "wheelbase": 2.5},
+        [
+            {"type": "path", "weight": 2.0},
+            "reference_velocity",
+            "acceleration",
+            "turn_rate",
+            "turn_acceleration",
+            {"type": "turn_rate_bound", "upper": -100.0},
+        ],
+        radius=50.0,
+        x0=[1.0, -1.0, 2.0, 0.1],
+        vref=2.0,
+        path=[[0.0, -1.0], [2.0, -0.5], [6.0, 1.0]],
+    )
+    di = AgentSpec(
+        "di",
+        "double_integrator",
+        ["goal", "velocity", "acceleration", "jerk", *always],
+        radius=50.0,
+        x0=[0.0, 2.0, 0.5, -0.2],
+        goal=[2.0, 0.0],
+    )
+    return PotentialGame(
+        GameSpec(
+            [uni, bic, di], [{"type": "collision", "weight": 3.0, "every": 2}], horizon=6, dt=0.2
+        )
+    )
+
+
+@pytest.fixture(scope="module")
+def crossing():
+    return crossing_game(N=3, K=30)
+
+
+# ----------------------------------------------------------------------------- steps
+@pytest.mark.parametrize(
+    "steps, text",
+    [
+        ([], "-"),
+        ([40], "40"),
+        (range(1, 41), "1..40"),
+        ([0, 1], "0..1"),
+        (range(5, 41, 5), "5,10,..,40"),
+        ([5, 10], "5,10"),
+        ([0, 3, 7], "0,3,7"),
+        ([0, 1, 2, 4, 8, 16, 32], "0,1,2,..,16,32"),
+    ],
+)
+def test_format_steps(steps, text):
+    assert format_steps(steps) == text
+
+
+# ----------------------------------------------------------------------------- term table
+def test_term_table_lists_every_term(crossing):
+    game = crossing
+    text = term_table(game)
+    lines = text.splitlines()
+    assert len(lines) == 3 + len(game.terms)  # title, header, rule, one line per term
+    assert f"{len(game.terms)} energy terms" in lines[0]
+    defaults = game.params.defaults()
+    for t, line in zip(game.terms, lines[3:], strict=True):
+        cells = line.split()
+        assert cells[0] == str(t.index)
+        assert cells[1] == t.kind
+        assert cells[2] == "-".join(t.agents)
+        assert t.weight in cells
+        assert f"{defaults[game.params[t.weight].start]:g}" in cells
+        assert format_steps(t.steps) in cells
+        assert cells[-1] == f"{t.rows.start}:{t.rows.stop}"
+        assert cells[-2] == str(t.size)
+    kinds = {t.kind for t in game.terms}
+    assert kinds == {"own", "pair"}
+
+
+def test_term_rows_steps_compact(crossing):
+    rows = term_rows(crossing)
+    byfeat = {(r["agents"][0], r["feature"]): r for r in rows}
+    K = crossing.K
+    assert byfeat[("a0", "goal")]["steps"] == str(K)
+    assert byfeat[("a0", "velocity")]["steps"] == f"1..{K}"
+    assert byfeat[("a0", "acceleration")]["steps"] == f"0..{K - 1}"
+    coll = [r for r in rows if r["kind"] == "pair"]
+    assert len(coll) == 3 and all(r["weight_default"] == 10.0 for r in coll)
+    assert sum(r["size"] for r in rows) == crossing.n_r
+
+
+def test_labelled_feature_shows_type():
+    a = AgentSpec(
+        "a",
+        "unicycle",
+        [{"type": "velocity", "label": "slow", "weight": 2.0}, "goal"],
+        x0=[0, 0, 1, 0],
+        goal=[1, 0],
+    )
+    game = PotentialGame(GameSpec([a], horizon=4))
+    assert "slow (velocity)" in term_table(game)
+    assert "w.a.slow" in term_table(game)
+
+
+# ----------------------------------------------------------------------------- breakdown
+def test_breakdown_sums_to_energy(crossing):
+    game = crossing
+    p = game.default_params()
+    u = RNG.normal(scale=0.2, size=game.n_u)
+    r = np.asarray(game.function("residual")(u, p)).ravel()
+    E = 0.5 * float(r @ r)  # independent of term_energies: the stacked residual
+    rows = energy_breakdown(game, u, p)
+    assert len(rows) == len(game.terms)
+    for row, t in zip(rows, game.terms, strict=True):
+        np.testing.assert_allclose(
+            row["energy"], 0.5 * np.sum(r[t.rows] ** 2), rtol=1e-12, atol=1e-15
+        )
+    np.testing.assert_allclose(sum(x["energy"] for x in rows), E, rtol=1e-12)
+    np.testing.assert_allclose(float(game.function("energy")(u, p)), E, rtol=1e-12)
+    np.testing.assert_allclose(sum(x["share"] for x in rows), 1.0, rtol=1e-12)
+    coll = [x for x in rows if x["feature_type"] == "collision"]
+    assert max(x["energy"] for x in coll) > 0  # the regime this game claims: agents meet
+
+
+def test_agent_breakdown_by_hand(crossing):
+    game = crossing
+    p = game.default_params()
+    u = RNG.normal(scale=0.2, size=game.n_u)
+    r = np.asarray(game.function("residual")(u, p)).ravel()
+    C = np.asarray(game.function("agent_costs")(u, p)).ravel()
+    for i, row in enumerate(agent_breakdown(game, u, p)):
+        a = game.agent_names[i]
+        own = sum(
+            0.5 * np.sum(r[t.rows] ** 2) for t in game.terms if t.kind == "own" and t.agents == (a,)
+        )
+        pair = sum(
+            0.5 * np.sum(r[t.rows] ** 2) for t in game.terms if t.kind == "pair" and a in t.agents
+        )
+        assert row["agent"] == a
+        np.testing.assert_allclose(
+            [row["own"], row["pair"], row["cost"]], [own, pair, own + pair], rtol=1e-12
+        )
+        np.testing.assert_allclose(row["cost"], C[i], rtol=1e-12)
+
+
+def test_breakdown_table_text(crossing):
+    game = crossing
+    u = RNG.normal(scale=0.2, size=game.n_u)
+    text = breakdown_table(game, u, game.default_params())
+    E = float(game.function("energy")(u, game.default_params()))
+    assert f"energy E = {E:.6g}" in text
+    for a in game.agent_names:
+        assert any(line.startswith(a + " ") for line in text.splitlines())
+    short = breakdown_table(game, u, game.default_params(), top=3)
+    assert f"... {len(game.terms) - 3} more terms" in short
+
+
+def test_breakdown_rejects_bad_inputs(crossing):
+    with pytest.raises(SpecError, match="^u: "):
+        energy_breakdown(crossing, np.zeros(3), crossing.default_params())
+    with pytest.raises(SpecError, match="^u/p: expected one problem"):
+        energy_breakdown(crossing, np.zeros((2, crossing.n_u)), crossing.default_params())
+    with pytest.raises(SpecError, match="^game: "):
+        term_table("not a game")
+
+
+# ----------------------------------------------------------------------------- sparsity
+def _fd_jacobian(game, u, p, h=1e-6):
+    f = game.function("residual")
+    J = np.empty((game.n_r, game.n_u))
+    for j in range(game.n_u):
+        e = np.zeros(game.n_u)
+        e[j] = h
+        J[:, j] = (np.asarray(f(u + e, p)).ravel() - np.asarray(f(u - e, p)).ravel()) / (2 * h)
+    return J
+
+
+def test_sparsity_matches_finite_differences():
+    game = always_active_game()
+    p = game.default_params()
+    u = RNG.normal(scale=0.3, size=game.n_u)
+    # the regime: every soft bound and collision term is active at u
+    r = np.asarray(game.function("residual")(u, p)).ravel()
+    for t in game.terms:
+        if t.feature_type.endswith("_bound") or t.feature_type == "collision":
+            assert np.all(r[t.rows] > 0), t
+    J_fd = _fd_jacobian(game, u, p)
+    sp = jacobian_sparsity(game)
+    assert sp["shape"] == (game.n_r, game.n_u)
+    assert sp["nnz"] == int(np.count_nonzero(J_fd))
+    np.testing.assert_array_equal(jacobian_pattern(game), J_fd != 0)
+    np.testing.assert_allclose(sp["density"], sp["nnz"] / (game.n_r * game.n_u))
+    assert sum(t["nnz"] for t in sp["terms"]) == sp["nnz"]
+    assert sum(a["nnz"] for a in sp["agents"]) == sp["nnz"]
+    J = np.asarray(game.function("jacobian")(u, p))
+    np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-6)
+
+
+def test_sparsity_structure_of_crossing(crossing):
+    """Own terms touch only their agent's controls; the goal ignores the last control."""
+    game = crossing
+    pat = jacobian_pattern(game)
+    for t in game.terms:
+        cols = np.flatnonzero(pat[t.rows].any(axis=0))
+        if t.kind == "own":
+            i = game.agent_names.index(t.agents[0])
+            assert cols.min() >= game.uoff[i] and cols.max() < game.uoff[i + 1]
+        if t.feature_type == "goal":  # x_K depends on u_0 .. u_{K-2} only
+            i = game.agent_names.index(t.agents[0])
+            assert cols.max() == game.uoff[i + 1] - game.nu[i] - 1
+
+
+def test_spy_text(crossing):
+    text = spy_text(crossing, width=30)
+    lines = text.splitlines()
+    assert len(lines) == 2 + len(crossing.terms)
+    for a in crossing.agent_names:
+        assert "|" + a in lines[0]
+    for t, line in zip(crossing.terms, lines[1:-1], strict=True):
+        assert line.split()[0] == str(t.index)
+        assert any(c in line for c in ".:#")
+    assert lines[-1].startswith(f"J = dr/du: {crossing.n_r} x {crossing.n_u}")
+    with pytest.raises(SpecError, match="^width: "):
+        spy_text(crossing, width=2)
+
+
+def test_inspect_imports_no_plotting():
+    code = (
+        "import sys, epo_casadi.inspect; print('matplotlib' in sys.modules, 'torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False False"
