@@ -1,0 +1,184 @@
+"""Time the iLQ feedback Nash solver (solvers.ilq) on RPI-like and N-player crossing games.
+
+Not a test. Run from the repository root::
+
+    .venv/bin/python bench/bench_ilq.py            # RPI-like N=2 K=40; N=3, 4 (K=40); N=3 K=100
+    .venv/bin/python bench/bench_ilq.py --quick    # smoke run: fewer repeats, no K=100 row
+
+Games (App. F.3 features: goal, velocity, acceleration, turn rate, soft bounds on speed,
+acceleration and turn rate, pairwise collision at every step; unicycles, dt = 0.1 s):
+
+* ``rpi``: robot from (-3, 0) to (3, 0), pedestrian from the circle of radius 3 at 100 deg
+  to the opposite side (+10 deg jitter), speeds 1 m/s, bounds and weights of the RPI recipe
+  (``scenarios/rpi.py`` defaults), collision weight 17.5 (middle of U(5, 30));
+* ``circle-N``: ``N`` agents on a circle of radius 3 crossing to the opposite side, goals
+  shifted 0.3 m sideways (``tests/helpers.crossing_spec``), collision weight 10.
+
+Every solve starts from zero controls (collision terms active on the way) and runs to the
+default tolerance ``max |a| <= 1e-5`` (``--tol`` changes it; ``--only-k100`` times only the
+3-player, 100-step game). Paths: ``numpy`` (Riccati recursion in numpy),
+``C`` (``compiled=True``: generated-C Riccati stage, compiled once before timing and
+reported as ``compile s``) and the reference ``LM``: the potential minimizer by
+:func:`solvers.lm.solve_lm` with the structured backend (interpreted), same start. The
+printed ratio is ``LM / C``. Times are wall-clock medians over repeats (paths take turns
+within each repeat), BLAS limited to one thread. Building the CasADi functions (once per
+game) is excluded and reported as ``build s``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+os.environ.setdefault("EPO_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from epo_casadi import (  # noqa: E402
+    Acceleration,
+    AccelerationBound,
+    AgentSpec,
+    Collision,
+    GameSpec,
+    Goal,
+    PotentialGame,
+    TurnRate,
+    TurnRateBound,
+    Velocity,
+    VelocityBound,
+)
+from solvers.ilq import get_solver, solve_ilq  # noqa: E402
+from solvers.lm import LMOptions, solve_lm  # noqa: E402
+
+
+def _features(vmax: float, w_goal=3.0, w_vel=0.5, w_bound=5.0):
+    return [
+        Goal(weight=w_goal),
+        Velocity(weight=w_vel),
+        Acceleration(weight=1.0),
+        VelocityBound(lower=0.0, upper=vmax, weight=w_bound),
+        AccelerationBound(lower=-2.0, upper=2.0, weight=w_bound),
+        TurnRate(weight=1.0),
+        TurnRateBound(lower=-1.5, upper=1.5, weight=w_bound),
+    ]
+
+
+def rpi_game(K: int = 40) -> PotentialGame:
+    phi, goal = np.deg2rad(100.0), np.deg2rad(290.0)
+    ps, pg = 3 * np.array([np.cos(phi), np.sin(phi)]), 3 * np.array([np.cos(goal), np.sin(goal)])
+    d = pg - ps
+    agents = [
+        AgentSpec("robot", "unicycle", _features(2.0), radius=0.25, x0=[-3, 0, 1, 0], goal=[3, 0]),
+        AgentSpec("pedestrian", "unicycle", _features(1.6), radius=0.25,
+                  x0=[ps[0], ps[1], 1.0, np.arctan2(d[1], d[0])], goal=pg.tolist()),
+    ]  # fmt: skip
+    return PotentialGame(GameSpec(agents, [Collision(weight=17.5)], horizon=K, dt=0.1))
+
+
+def circle_game(N: int, K: int, offset: float = 0.3) -> PotentialGame:
+    agents = []
+    for i in range(N):
+        ang = 2 * np.pi * i / N
+        c, s = np.cos(ang), np.sin(ang)
+        agents.append(
+            AgentSpec(f"a{i}", "unicycle", _features(2.0, w_vel=0.5), radius=0.25,
+                      x0=[3 * c, 3 * s, 1.0, ang + np.pi], goal=[-3 * c - offset * s, -3 * s + offset * c])
+        )  # fmt: skip
+    return PotentialGame(GameSpec(agents, [Collision(weight=10.0)], horizon=K, dt=0.1))
+
+
+def _median_ms(ts):
+    return 1e3 * float(np.median(ts))
+
+
+def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
+    rows = []
+    for name, game in cases:
+        p = game.default_params()
+        t = time.perf_counter()
+        solver = get_solver(game)
+        build = time.perf_counter() - t
+        t = time.perf_counter()
+        solver.compile()
+        compile_s = time.perf_counter() - t
+        paths = {
+            "numpy": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol}),
+            "C": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol, "compiled": True}),
+        }
+        if with_lm:
+            lm_opts = LMOptions(backend="structured", threads=1)
+            paths["LM"] = lambda g=game, p=p, o=lm_opts: solve_lm(g, p, options=o)
+        last = {k: f() for k, f in paths.items()}  # warm-up (and the results)
+        times = {k: [] for k in paths}
+        for _ in range(repeats):
+            for k, f in paths.items():
+                t = time.perf_counter()
+                last[k] = f()
+                times[k].append(time.perf_counter() - t)
+        r_np, r_c = last["numpy"], last["C"]
+        assert np.allclose(r_np.controls, r_c.controls, atol=1e-8), name
+        row = {
+            "game": name,
+            "N": game.N,
+            "K": game.K,
+            "iters": int(r_c.iterations),
+            "status": r_c.status.value,
+            "build s": build,
+            "compile s": compile_s,
+            "numpy ms": _median_ms(times["numpy"]),
+            "C ms": _median_ms(times["C"]),
+            "C ms/iter": _median_ms(times["C"]) / max(int(r_c.iterations), 1),
+        }
+        if with_lm:
+            row["LM ms"] = _median_ms(times["LM"])
+            row["LM iters"] = int(last["LM"].iterations)
+            row["LM / C"] = row["LM ms"] / row["C ms"]
+        rows.append(row)
+        _print([row], header=len(rows) == 1)
+    return rows
+
+
+def _print(rows, header=True):
+    cols = list(rows[0])
+    fmt = {k: ("{:.2f}" if isinstance(rows[0][k], float) else "{}") for k in cols}
+    if header:
+        print(" | ".join(f"{c:>10s}" for c in cols))
+        print("-|-".join("-" * 10 for _ in cols))
+    for r in rows:
+        print(" | ".join(f"{fmt[c].format(r[c]):>10s}" for c in cols), flush=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=15, help="timed repeats per game (median)")
+    ap.add_argument("--quick", action="store_true", help="3 repeats, no K=100 row")
+    ap.add_argument("--no-lm", action="store_true", help="skip the LM reference")
+    ap.add_argument("--tol", type=float, default=1e-5, help="iLQ tolerance on max |a|")
+    ap.add_argument("--only-k100", action="store_true", help="only the N=3, K=100 game")
+    a = ap.parse_args(argv)
+    repeats = 3 if a.quick else a.repeats
+    cases = [
+        ("rpi", rpi_game(40)),
+        ("circle-3", circle_game(3, 40)),
+        ("circle-4", circle_game(4, 40)),
+    ]
+    if not a.quick:
+        cases.append(("circle-3", circle_game(3, 100)))
+    if a.only_k100:
+        cases = [("circle-3", circle_game(3, 100))]
+    print(
+        f"iLQ game solver, median of {repeats} repeats (wall clock), start: zero controls, "
+        f"tol {a.tol:g}"
+    )
+    run(cases, repeats, with_lm=not a.no_lm, tol=a.tol)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,952 @@
+"""Iterative linear-quadratic (iLQ) solver for general-sum feedback Nash games.
+
+The method of Fridovich-Keil et al. (ICRA 2020), written from the math. Shapes and index
+order of ``u``, ``x`` and ``p`` follow the contract in :mod:`epo_casadi.game`.
+
+Stage vectors
+    The recursion works on *joint stage vectors*: ``X_k = (x_{0,k}, ..., x_{N-1,k})``
+    (``nx = sum_i nx_i`` entries, agent-major) and ``U_k = (u_{0,k}, ..., u_{N-1,k})``
+    (``nu = sum_i nu_i``). :func:`to_stages` and :func:`from_stages` convert between the
+    flat game layout and ``X (K+1, nx)``, ``U (K, nu)``.
+
+Player costs
+    Player ``i`` minimizes ``C_i(x, u, p)``, a function of the whole free trajectory.
+    By default ``C_i`` is component ``i`` of ``game.function('traj_agent_costs')``; any
+    ``casadi.Function`` ``(x, u, p) -> C`` (``N`` entries, game layout) can be passed
+    instead (``costs=``), so the costs need not form a potential.
+
+One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible)
+    1. *Linearize* the joint dynamics, ``dX_{k+1} = A_k dX_k + B_k dU_k`` (block-diagonal
+       per agent), and *quadratize* every player's cost: the exact CasADi gradient of
+       ``C_i`` w.r.t. ``(U_k, X_k)`` and the diagonal stage blocks of a Hessian
+       (``ILQOptions.hessian``):
+
+       * ``"exact"``: the exact Hessian of ``C_i`` (any costs);
+       * ``"gauss_newton"``: ``J_i'J_i``, ``J_i`` the exact Jacobian of the residual rows of
+         the terms that make up ``C_i = 1/2 |r_i|^2`` (game costs only). Positive
+         semi-definite, so every player's LQ problem stays convex;
+       * ``"auto"`` (default): Gauss-Newton for the game's costs, exact for custom ones.
+         On the crossing games of the tests, exact Hessians with the shift below do not
+         converge (the collision distance has negative curvature, the value Hessians turn
+         indefinite and grow), Gauss-Newton converges in 7-13 iterations (docs/sections/ilq.md).
+
+       **Cross-stage Hessian blocks are dropped** (residual rows that couple two stages,
+       e.g. ``jerk`` or ``turn_acceleration``): the gradient stays exact, the curvature
+       between ``u_k`` and ``u_{k+1}`` is ignored (:attr:`ILQSolver.dropped_cross_stage`
+       counts the dropped nonzeros). Such a cost is not stage-additive, so its feedback
+       game has no exact dynamic-programming form anyway.
+    2. *Solve the LQ game's feedback Nash equilibrium* by the coupled Riccati recursion.
+       With the homogeneous stage vector ``w = (dU, dX, 1)`` and player ``i``'s stage
+       cost ``1/2 w' L_ik w``, value ``1/2 (dX, 1)' Z_ik (dX, 1)`` (``Z_iK = L_iK``) and
+       ``Phi_k = [[B_k, A_k, 0], [0, 0, 1]]``, at stage ``k = K-1..0``::
+
+           T_i = L_ik + Phi_k' Z_i,k+1 Phi_k                  (player i's Q-function)
+           rows u_i of T_i:   T_i[u_i, u] (P, a) = T_i[u_i, (x, 1)]    for every player i
+           dU = -P dX - a,    Z_ik = Psi' T_i Psi,    Psi = [[-P, -a], [I, 0], [0, 1]]
+
+       The stacked rows form one ``nu x nu`` linear system for all players' gains ``P``
+       (``nu x nx``) and feed-forward terms ``a`` (``nu``).
+    3. *Roll out* the nonlinear dynamics with the feedback policy
+       ``U_k = Ubar_k - P_k (X_k - Xbar_k) - eps a_k``. ``eps`` starts at ``step_size``
+       and is multiplied by ``backtrack`` while the rollout is non-finite, leaves the trust
+       region ``max |X - Xbar| <= max_state_step`` or (``line_search="residual"``) does
+       not lower ``max |a|`` at the trial point (costs one backward pass per trial).
+
+    The iteration stops when ``max |a| <= tol`` (status ``CONVERGED``): the feed-forward
+    term is the change of the controls a full step would make at fixed state, and ``a = 0``
+    at every stage is the first-order feedback Nash condition: with everybody following
+    ``U(X) = U* - P (X - X*)``, no player lowers its cost to first order by deviating at
+    one stage. (``P`` comes from the quadratization without the dynamics' second
+    derivatives, so the policy is a first-order, iLQR-like, approximation of the true
+    feedback equilibrium's; the trajectory condition ``a = 0`` itself is exact.)
+
+Regularization
+    A player's stage problem is well posed when its own block ``H_ii = T_i[u_i, u_i]`` is
+    positive definite. ``regularization`` ``mu0 >= 0`` is always added to ``H_ii`` (a
+    proximal term ``mu0/2 |du_i|^2`` in player ``i``'s cost). When a pivot of ``H_ii``
+    (``LDL'``, no pivoting) is below ``min_curvature``, ``mu = max(min_curvature - g,
+    min_curvature) + max(-g, 0)`` is added on top, ``g`` the Gershgorin lower bound of its
+    eigenvalues: the block becomes positive definite with negative curvature mirrored
+    (a concave direction gets curvature of its own size, not a near-singular one). If the
+    coupled system is still singular, every player's block at that stage gets ``10x`` more
+    until it solves. When a backward pass still fails, or no step is usable, the global
+    ``mu0`` is raised ``10x`` (at least to ``1e-4``) and the iteration retried; it is lowered
+    ``10x`` after each accepted step. The shifts enter the value recursion too (a
+    consistent regularized LQ game). ``result.info`` reports them: ``regularization``
+    ``(K, N)`` of the last backward pass and ``max_regularization`` over the solve.
+
+Result (:class:`solvers.result.SolveResult`, ``solver='ilq'``)
+    ``energy`` is the potential ``E(u, p)`` of the game when the costs are the game's own,
+    ``nan`` with custom costs (and so is ``grad_norm``, the inf-norm of ``dE/du``, which a
+    feedback equilibrium does not make zero). ``agent_costs`` are the ``C_i`` that were
+    solved. ``info['gains']`` ``(K, nu, nx)`` and ``info['feedforward']`` ``(K, nu)`` are
+    ``P`` and ``a`` at the returned trajectory: the feedback policy
+    ``U_k(X) = U*_k - P_k (X - X*_k) - a_k`` (``a ~ 0`` when converged).
+    ``info['stationarity']`` is the final ``max |a|``, ``info['residual_history']`` the
+    same per iteration, ``info['step_sizes']`` the accepted ``eps`` (``0``: a retry with
+    more regularization).
+
+Speed
+    The CasADi functions are built once per game, costs and Hessian mode, and cached on the
+    game: one call returns the costs, the stage Hessian nonzeros and the dynamics Jacobians
+    (``Function.map`` over stages), one call rolls out the feedback policy; numpy scatters
+    the nonzeros with precomputed indices. The Riccati recursion runs in numpy (players
+    stacked), or, with ``compiled=True``, as a generated-C stage function folded over the
+    horizon (``Function.mapaccum``, :mod:`solvers.codegen`: needs a C compiler, compiled
+    once per game structure and cached on disk; a singular stage falls back to numpy).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+from .lm import check_options
+from .result import SolveResult, Status
+
+__all__ = ["ILQOptions", "ILQSolver", "get_solver", "solve_ilq", "to_stages", "from_stages"]
+
+LINE_SEARCHES = ("none", "residual")
+HESSIANS = ("auto", "gauss_newton", "exact")
+
+
+def _num(name, v, lo=None, hi=None, strict_lo=False, integer=False):
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+    if integer:
+        ok = ok and isinstance(v, int)
+    ok = ok and not (isinstance(v, float) and math.isnan(v))
+    if ok and lo is not None:
+        ok = v > lo if strict_lo else v >= lo
+    if ok and hi is not None:
+        ok = v <= hi
+    if not ok:
+        rng = []
+        if lo is not None:
+            rng.append(f"{'>' if strict_lo else '>='} {lo}")
+        if hi is not None:
+            rng.append(f"<= {hi}")
+        kind = "an integer" if integer else "a number"
+        raise SpecError(f"ilq.{name}", f"expected {kind} {' and '.join(rng)}, got {v!r}")
+
+
+@dataclass(frozen=True)
+class ILQOptions:
+    """iLQ game options (defaults: a converging standalone solve)."""
+
+    max_iter: int = 100  #: maximum number of iterations (backward pass + accepted forward pass)
+    tol: float = 1e-5  #: converged when max |a| (feed-forward, control units) <= tol
+    hessian: str = "auto"  #: "gauss_newton", "exact"; "auto": GN for game costs, else exact
+    step_size: float = 1.0  #: first trial eps on the feed-forward term in every iteration
+    line_search: str = "none"  #: "none": take step_size; "residual": max|a| at the trial must drop
+    backtrack: float = 0.5  #: factor on eps after a rejected trial step
+    max_backtracks: int = 10  #: rejected trials before the smallest step is taken anyway
+    max_state_step: float = math.inf  #: trust region: largest |X_new - X| (elementwise) accepted
+    regularization: float = 0.0  #: mu0 >= 0 always added to every player's own block H_ii
+    min_curvature: float = 1e-8  #: smallest allowed pivot of H_ii before a shift is added
+    compiled: bool = False  #: Riccati recursion as generated C (needs a C compiler; cached on disk)
+
+    def __post_init__(self):
+        _num("max_iter", self.max_iter, 0, integer=True)
+        _num("tol", self.tol, 0)
+        if self.hessian not in HESSIANS:
+            raise SpecError("ilq.hessian", f"expected one of {HESSIANS}, got {self.hessian!r}")
+        _num("step_size", self.step_size, 0, 1, strict_lo=True)
+        if self.line_search not in LINE_SEARCHES:
+            raise SpecError(
+                "ilq.line_search", f"expected one of {LINE_SEARCHES}, got {self.line_search!r}"
+            )
+        _num("backtrack", self.backtrack, 0, strict_lo=True)
+        if not self.backtrack < 1:
+            raise SpecError("ilq.backtrack", f"expected 0 < backtrack < 1, got {self.backtrack!r}")
+        _num("max_backtracks", self.max_backtracks, 0, integer=True)
+        _num("max_state_step", self.max_state_step, 0, strict_lo=True)
+        _num("regularization", self.regularization, 0)
+        if not math.isfinite(self.regularization):
+            raise SpecError(
+                "ilq.regularization", f"expected a finite number >= 0, got {self.regularization!r}"
+            )
+        _num("min_curvature", self.min_curvature, 0)
+        if not math.isfinite(self.min_curvature):
+            raise SpecError(
+                "ilq.min_curvature", f"expected a finite number >= 0, got {self.min_curvature!r}"
+            )
+        if not isinstance(self.compiled, bool):
+            raise SpecError("ilq.compiled", f"expected True or False, got {self.compiled!r}")
+
+
+# --------------------------------------------------------------------------------------
+# layout helpers
+# --------------------------------------------------------------------------------------
+def _stage_index(game: PotentialGame):
+    """Index arrays: flat x -> (K+1, nx) and flat u -> (K, nu)."""
+    K = game.K
+    xi = np.concatenate(
+        [
+            game.xoff[i] + np.arange(K + 1)[:, None] * game.nx[i] + np.arange(game.nx[i])[None]
+            for i in range(game.N)
+        ],
+        axis=1,
+    )
+    ui = np.concatenate(
+        [
+            game.uoff[i] + np.arange(K)[:, None] * game.nu[i] + np.arange(game.nu[i])[None]
+            for i in range(game.N)
+        ],
+        axis=1,
+    )
+    return xi.astype(np.intp), ui.astype(np.intp)
+
+
+def to_stages(game: PotentialGame, x: np.ndarray | None = None, u: np.ndarray | None = None):
+    """Joint stage arrays ``X (..., K+1, nx)`` and ``U (..., K, nu)`` from flat ``x``, ``u``.
+
+    Either argument may be ``None`` (then ``None`` is returned in its place).
+    """
+    xi, ui = _stage_index(game)
+    X = None if x is None else np.asarray(x)[..., xi]
+    U = None if u is None else np.asarray(u)[..., ui]
+    return X, U
+
+
+def from_stages(game: PotentialGame, X: np.ndarray | None = None, U: np.ndarray | None = None):
+    """Inverse of :func:`to_stages`: flat ``x (..., n_x)`` and ``u (..., n_u)``."""
+    xi, ui = _stage_index(game)
+    x = u = None
+    if X is not None:
+        X = np.asarray(X)
+        x = np.empty(X.shape[:-2] + (game.n_x,))
+        x[..., xi] = X
+    if U is not None:
+        U = np.asarray(U)
+        u = np.empty(U.shape[:-2] + (game.n_u,))
+        u[..., ui] = U
+    return x, u
+
+
+class _Call:
+    """A casadi.Function called through its buffer interface on preallocated numpy arrays."""
+
+    def __init__(self, f: ca.Function):
+        self.f = f
+        self.buf, self.ev = f.buffer()
+        self.outs = [np.empty(f.nnz_out(i)) for i in range(f.n_out())]
+        for i, o in enumerate(self.outs):
+            self.buf.set_res(i, memoryview(o))
+        self._ins = [None] * f.n_in()
+        self._sizes = [f.nnz_in(i) for i in range(f.n_in())]
+
+    def __call__(self, *args):
+        for i, a in enumerate(args):
+            a = np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
+            if a.size != self._sizes[i]:
+                raise ValueError(
+                    f"{self.f.name()}: input {i} needs {self._sizes[i]} numbers, got {a.size}"
+                )
+            self._ins[i] = a  # keep alive while CasADi reads it
+            self.buf.set_arg(i, memoryview(a))
+        self.ev()
+        return self.outs
+
+
+# --------------------------------------------------------------------------------------
+# the solver object
+# --------------------------------------------------------------------------------------
+class ILQSolver:
+    """iLQ game solver for one game and one set of player costs (functions built once).
+
+    ``costs``: ``None`` (the game's ``traj_agent_costs``) or a ``casadi.Function``
+    ``(x, u, p) -> C`` with ``C`` of ``N`` entries, in the layout of :mod:`epo_casadi.game`.
+    ``hessian``: ``"gauss_newton"`` (game costs only: ``J_i'J_i`` of player ``i``'s
+    residual rows, positive semi-definite), ``"exact"`` or ``"auto"`` (Gauss-Newton for the
+    game's costs, exact for custom ones). The object holds work arrays and CasADi buffers:
+    one solve at a time (not thread-safe; use one solver per thread).
+    """
+
+    def __init__(
+        self, game: PotentialGame, costs: ca.Function | None = None, hessian: str = "auto"
+    ):
+        if not isinstance(game, PotentialGame):
+            raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+        if hessian not in HESSIANS:
+            raise SpecError("ilq.hessian", f"expected one of {HESSIANS}, got {hessian!r}")
+        self.game = game
+        self.custom_costs = costs is not None
+        if hessian == "auto":
+            hessian = "exact" if self.custom_costs else "gauss_newton"
+        if hessian == "gauss_newton" and self.custom_costs:
+            raise SpecError(
+                "ilq.hessian",
+                "'gauss_newton' needs the game's own (sum-of-squares) costs; use 'exact' with custom costs",
+            )
+        self.hessian = hessian
+        self.costs = self._check_costs(game, costs)
+        K, N = game.K, game.N
+        self.K, self.N = K, N
+        self.nx = int(sum(game.nx))
+        self.nu = int(sum(game.nu))
+        self.n = self.nu + self.nx + 1
+        self.xidx, self.uidx = _stage_index(game)
+        self.uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
+        self.xo = np.concatenate([[0], np.cumsum(game.nx)]).astype(int)
+        self._build_quadratize()
+        self._build_rollout()
+        self._build_riccati_indices()
+        self._compiled: _CompiledRiccati | None = None
+
+    # ---- checks ---------------------------------------------------------------------------
+    @staticmethod
+    def _check_costs(game, costs):
+        if costs is None:
+            return game.function("traj_agent_costs")
+        if not isinstance(costs, ca.Function):
+            raise SpecError(
+                "costs", f"expected a casadi.Function (x, u, p) -> C, got {type(costs).__name__}"
+            )
+        want = [(game.n_x, 1), (game.n_u, 1), (game.n_p, 1)]
+        got = [(costs.size1_in(i), costs.size2_in(i)) for i in range(costs.n_in())]
+        if costs.n_in() != 3 or got != want:
+            raise SpecError("costs", f"expected inputs (x, u, p) of sizes {want}, got {got}")
+        if costs.n_out() < 1 or costs.numel_out(0) != game.N:
+            raise SpecError(
+                "costs",
+                f"expected a first output with N = {game.N} entries, got shape {costs.size_out(0)}",
+            )
+        if costs.is_a("MXFunction"):
+            try:
+                costs = costs.expand()
+            except RuntimeError as e:
+                raise SpecError("costs", f"the MX function cannot be expanded to SX: {e}") from None
+        return costs
+
+    # ---- symbolic builders ------------------------------------------------------------------
+    def _joint_step(self, X, U):
+        g = self.game
+        parts = []
+        for i, a in enumerate(g.agents):
+            parts.append(
+                a.dynamics.step(
+                    X[self.xo[i] : self.xo[i + 1]], U[self.uo[i] : self.uo[i + 1]], g.dt
+                )
+            )
+        return ca.vertcat(*parts)
+
+    def _build_quadratize(self):
+        g, K, N, nx, nu, n = self.game, self.K, self.N, self.nx, self.nu, self.n
+        Xs = ca.SX.sym("X", nx, K + 1)
+        Us = ca.SX.sym("U", nu, K)
+        p = ca.SX.sym("p", g.n_p)
+        x_flat = ca.vertcat(*[ca.vec(Xs[self.xo[i] : self.xo[i + 1], :]) for i in range(N)])
+        u_flat = ca.vertcat(*[ca.vec(Us[self.uo[i] : self.uo[i + 1], :]) for i in range(N)])
+        C = ca.reshape(self.costs(x_flat, u_flat, p), N, 1)
+        # stage-major variables z = (U_0, X_0, U_1, X_1, ..., U_{K-1}, X_{K-1}, X_K)
+        zs = []
+        for k in range(K):
+            zs += [Us[:, k], Xs[:, k]]
+        zs.append(Xs[:, K])
+        z = ca.vertcat(*zs)
+        nz = z.shape[0]
+        stage_of = np.concatenate(
+            [np.full(nu + nx, k) for k in range(K)] + [np.full(nx, K)]
+        ).astype(int)
+        pos_in = np.concatenate(
+            [np.arange(nu + nx) for _ in range(K)] + [nu + np.arange(nx)]
+        ).astype(int)
+        n_stage = K * N * n * n
+        r_all = (
+            g.function("traj_residual")(x_flat, u_flat, p)
+            if self.hessian == "gauss_newton"
+            else None
+        )
+        outs, src, tgt = [], [], []
+        off = 0
+        for i in range(N):
+            if self.hessian == "gauss_newton":
+                rows_i = [
+                    r
+                    for t in g.terms
+                    if g.agent_names[i] in t.agents
+                    for r in range(t.rows.start, t.rows.stop)
+                ]
+                ri = r_all[rows_i] if rows_i else ca.SX(0, 1)
+                J = ca.jacobian(ri, z)
+                H, grad = ca.mtimes(J.T, J), ca.mtimes(J.T, ri)
+            else:
+                H, grad = ca.hessian(C[i], z)
+            # gradient -> last row and last column of player i's stage matrices
+            outs.append(ca.densify(grad))
+            for a_, b_ in ((pos_in, np.full(nz, n - 1)), (np.full(nz, n - 1), pos_in)):
+                src.append(off + np.arange(nz))
+                tgt.append(self._lam_index(stage_of, i, a_, b_, n_stage))
+            off += nz
+            # Hessian nonzeros inside a stage block; cross-stage blocks are dropped
+            rows, cols = (np.asarray(v, dtype=int) for v in H.sparsity().get_triplet())
+            sel = np.nonzero(stage_of[rows] == stage_of[cols])[0]
+            outs.append(H.nz[sel.tolist()] if sel.size else ca.SX(0, 1))
+            src.append(off + np.arange(sel.size))
+            tgt.append(
+                self._lam_index(
+                    stage_of[rows[sel]], i, pos_in[rows[sel]], pos_in[cols[sel]], n_stage
+                )
+            )
+            off += sel.size
+            self.dropped_cross_stage = int(rows.size - sel.size) + getattr(
+                self, "dropped_cross_stage", 0
+            )
+        # dynamics Jacobians per stage, packed into Phi[k] = [[B_k, A_k, 0], [0, 0, 1]]
+        xk, uk = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
+        nxt = self._joint_step(xk, uk)
+        Ja, Jb = ca.jacobian(nxt, xk), ca.jacobian(nxt, uk)
+        lin = ca.Function("ilq_lin", [xk, uk], [Ja, Jb])
+        A_all, B_all = (lin.map(K) if K > 1 else lin)(Xs[:, :K], Us)
+        ra, cA = (np.asarray(v, dtype=int) for v in Ja.sparsity().get_triplet())
+        rb, cB = (np.asarray(v, dtype=int) for v in Jb.sparsity().get_triplet())
+        # nonzeros of a mapped output are stage-major (each stage's column block in turn)
+        A_nz = ca.reshape(A_all.nz[:], Ja.nnz(), K)
+        B_nz = ca.reshape(B_all.nz[:], Jb.nnz(), K)
+        phi_out = ca.vec(ca.vertcat(B_nz, A_nz))
+        stage0 = np.concatenate([rb * n + cB, ra * n + nu + cA])
+        self._phi_pattern = stage0  # flat entries of one Phi[k] that change with the trajectory
+        self._phi_tgt = (
+            (np.arange(K)[:, None] * ((nx + 1) * n) + stage0[None]).reshape(-1).astype(np.intp)
+        )
+        if self.custom_costs:
+            E = ca.SX(np.nan)
+        else:
+            E = 0.5 * ca.sumsqr(g.function("traj_residual")(x_flat, u_flat, p))
+        self.quad = _Call(
+            ca.Function(
+                "ilq_quadratize",
+                [Xs, Us, p],
+                [C, E, ca.vertcat(*outs), phi_out],
+                ["X", "U", "p"],
+                ["C", "E", "lam_nz", "phi_nz"],
+            )
+        )
+        self._lam_src = np.concatenate(src).astype(np.intp)
+        self._lam_tgt = np.concatenate(tgt).astype(np.intp)
+        self.Lam = np.zeros(n_stage + N * n * n)  # stages 0..K-1, then the terminal stage
+        self.Phi = np.zeros((K, nx + 1, n))
+        self.Phi[:, nx, n - 1] = 1.0
+
+    def _lam_index(self, k, i, a, b, n_stage):
+        """Flat index into ``self.Lam`` of entry ``(a, b)`` of player ``i`` at stage ``k``.
+
+        Stages ``k < K`` fill ``(K, N, n, n)``; stage ``K`` fills the terminal ``(N, n, n)``
+        block after it (its ``(x, 1)`` rows and columns, same positions as other stages).
+        """
+        n, N = self.n, self.N
+        k = np.asarray(k)
+        return np.where(k < self.K, ((k * N + i) * n + a) * n + b, n_stage + (i * n + a) * n + b)
+
+    def _build_rollout(self):
+        K, nx, nu = self.K, self.nx, self.nu
+        x0 = ca.SX.sym("x0", nx)
+        Xr = ca.SX.sym("Xr", nx, K + 1)
+        Ur = ca.SX.sym("Ur", nu, K)
+        PA = ca.SX.sym("PA", (nx + 1) * nu, K)
+        eps = ca.SX.sym("eps")
+        x = x0
+        X, U = [x0], []
+        for k in range(K):
+            pa = ca.reshape(PA[:, k], nx + 1, nu).T  # row-major (nu, nx+1) block of stage k
+            u = Ur[:, k] - ca.mtimes(pa[:, :nx], x - Xr[:, k]) - eps * pa[:, nx]
+            x = self._joint_step(x, u)
+            X.append(x)
+            U.append(u)
+        self.roll = _Call(
+            ca.Function(
+                "ilq_rollout",
+                [x0, Xr, Ur, PA, eps],
+                [ca.horzcat(*X), ca.horzcat(*U)],
+                ["x0", "Xr", "Ur", "PA", "eps"],
+                ["X", "U"],
+            )
+        )
+        blocks = [self.game.params[f"x0.{a}"] for a in self.game.agent_names]
+        self._x0_idx = np.concatenate(
+            [np.arange(b.start, b.start + b.size) for b in blocks]
+        ).astype(np.intp)
+
+    def _build_riccati_indices(self):
+        N, nu, nx, n = self.N, self.nu, self.nx, self.n
+        owner = np.concatenate([np.full(self.game.nu[i], i) for i in range(N)]).astype(np.intp)
+        self._row_p, self._row_r = owner, np.arange(nu, dtype=np.intp)
+        self._own_diag = (owner, np.arange(nu, dtype=np.intp), np.arange(nu, dtype=np.intp))
+        self._Psi = np.zeros((n, nx + 1))
+        self._Psi[nu:, :] = np.eye(nx + 1)
+        self._term = np.r_[nu + np.arange(nx), n - 1].astype(np.intp)
+        # own 2x2 blocks (every agent with two controls): flat indices of h00, h11, h01, h10
+        self._own2 = None
+        if all(m == 2 for m in self.game.nu):
+            u0 = self.uo[:-1]
+            base = np.arange(N) * n * n
+            self._own2 = np.stack(
+                [
+                    base + u0 * n + u0,
+                    base + (u0 + 1) * n + u0 + 1,
+                    base + u0 * n + u0 + 1,
+                    base + (u0 + 1) * n + u0,
+                ]
+            ).astype(np.intp)
+
+    # ---- numeric pieces ---------------------------------------------------------------------
+    def rollout(self, p, Xr, Ur, PA, eps):
+        """Closed-loop rollout ``U_k = Ur_k - P_k (X_k - Xr_k) - eps a_k``: ``(X, U)``."""
+        X, U = self.roll(p[self._x0_idx], Xr, Ur, PA, eps)
+        return X.reshape(self.K + 1, self.nx).copy(), U.reshape(self.K, self.nu).copy()
+
+    def quadratize(self, X, U, p):
+        """Costs ``C`` and energy ``E`` at ``(X, U)``; fills ``self.Lam`` and ``self.Phi``."""
+        C, E, lam, phi = self.quad(X, U, p)
+        self.Lam[self._lam_tgt] = lam[self._lam_src]
+        self.Phi.reshape(-1)[self._phi_tgt] = phi
+        return C.copy(), float(E[0])
+
+    def _own_shift(self, T, delta):
+        """Shift per player so that its own block ``T_i[u_i, u_i]`` has pivots >= delta.
+
+        ``0`` when the ``LDL'`` pivots are all ``>= delta``, else ``max(delta - g, delta)``
+        with ``g`` the Gershgorin lower bound of the block's eigenvalues.
+        """
+        if self._own2 is not None:  # closed-form pivots of 2x2 blocks
+            h00, h11, h01, h10 = T.reshape(-1)[self._own2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ok = (h00 >= delta) & (h11 - h01 * h10 / h00 >= delta)
+            if ok.all():
+                return None
+            gersh = np.minimum(h00 - np.abs(h01), h11 - np.abs(h10))
+            return np.where(ok, 0.0, _shift(gersh, delta))
+        mu = np.zeros(self.N)
+        for i in range(self.N):
+            s = slice(self.uo[i], self.uo[i + 1])
+            H = T[i, s, s]
+            if not _pivots_ok(H, delta):
+                d = np.diag(H)
+                gersh = np.min(d - (np.sum(np.abs(H), axis=1) - np.abs(d))) if d.size else 0.0
+                mu[i] = _shift(gersh, delta)
+        return mu if mu.any() else None
+
+    def backward(self, mu0: float, delta: float):
+        """Coupled Riccati recursion on ``self.Lam``/``self.Phi``.
+
+        Returns ``(PA, mu, ok)``: ``PA (K, nu, nx+1)`` holds ``[P_k | a_k]``, ``mu (K, N)``
+        the shift added to each player's own block (``mu0`` included), ``ok`` False when
+        a stage could not be solved (non-finite numbers).
+        """
+        if self._compiled is not None:
+            return self._compiled.backward(mu0, delta)
+        K, N, nu, nx, n = self.K, self.N, self.nu, self.nx, self.n
+        Lam = self.Lam[: K * N * n * n].reshape(K, N, n, n)
+        LamK = self.Lam[K * N * n * n :].reshape(N, n, n)
+        t = self._term
+        Z = LamK[:, t[:, None], t[None, :]]
+        PA = np.empty((K, nu, nx + 1))
+        mus = np.full((K, N), float(mu0))
+        Psi = self._Psi
+        od, rp, rr = self._own_diag, self._row_p, self._row_r
+        ok = True
+        with np.errstate(all="ignore"):
+            for k in range(K - 1, -1, -1):
+                Ph = self.Phi[k]
+                T = Ph.T @ (Z @ Ph)
+                T += Lam[k]
+                if mu0:
+                    T[od] += mu0
+                mu = self._own_shift(T, delta)
+                if mu is not None:
+                    T[od] += mu[rp]
+                    mus[k] += mu
+                extra = 0.0
+                for _ in range(20):  # singular coupled system: shift every own block more
+                    rows = T[rp, rr]
+                    try:
+                        pa = np.linalg.solve(rows[:, :nu], rows[:, nu:])
+                        if np.isfinite(pa).all():
+                            break
+                    except np.linalg.LinAlgError:
+                        pass
+                    step = max(10.0 * extra, delta, 1e-8)
+                    T[od] += step - extra
+                    extra = step
+                else:
+                    ok = False
+                    break
+                mus[k] += extra
+                PA[k] = pa
+                Psi[:nu] = -pa
+                Z = Psi.T @ (T @ Psi)
+            if ok and not np.isfinite(Z).all():
+                ok = False
+        return PA, mus, ok
+
+    def compile(self) -> ILQSolver:
+        """Run the Riccati recursion as generated C from now on (see :class:`_CompiledRiccati`)."""
+        if self._compiled is None:
+            self._compiled = _CompiledRiccati(self)
+        return self
+
+    # ---- the solve ------------------------------------------------------------------------
+    def solve(
+        self, p: np.ndarray, u0: np.ndarray | None = None, options: ILQOptions | dict | None = None
+    ) -> SolveResult:
+        """Solve one problem: ``p (n_p,)``, ``u0 (n_u,)`` (zeros if None)."""
+        opts = check_options(ILQOptions, options, "ilq")
+        if opts.hessian not in ("auto", self.hessian):
+            raise SpecError(
+                "ilq.hessian",
+                f"this solver was built with hessian={self.hessian!r}, options ask for {opts.hessian!r}",
+            )
+        if opts.compiled:
+            self.compile()
+        backward = (
+            self.backward if opts.compiled or self._compiled is None else self._numpy_backward
+        )
+        t0 = time.perf_counter()
+        g = self.game
+        U0, P = g.check_inputs(g.zero_controls() if u0 is None else u0, p)
+        if U0.shape[0] != 1:
+            raise SpecError("u0/p", "ILQSolver.solve takes one problem; solve_ilq takes a batch")
+        p = P[0]
+        _, Ubar = to_stages(g, None, U0[0])
+        Xbar, Ubar = self.rollout(
+            p, np.zeros((self.K + 1, self.nx)), Ubar, np.zeros((self.K, self.nu, self.nx + 1)), 0.0
+        )
+        mu0, delta = float(opts.regularization), float(opts.min_curvature)
+        mu_run = mu0  # raised 10x when a backward or forward pass fails, lowered after success
+
+        def linearize(X, U):
+            C, E = self.quadratize(X, U, p)
+            PA, mu, ok = backward(mu_run, delta)
+            res = float(np.max(np.abs(PA[:, :, -1]))) if self.K else 0.0
+            finite = ok and math.isfinite(res) and bool(np.isfinite(C).all())
+            return C, E, PA, mu, res if finite else math.inf
+
+        def bump():
+            nonlocal mu_run
+            if mu_run >= _MAX_MU:
+                return False
+            mu_run = max(10.0 * mu_run, 1e-4)
+            return True
+
+        def relinearize(X, U):
+            lin = linearize(X, U)
+            while not math.isfinite(lin[4]) and bump():
+                lin = linearize(X, U)
+            return lin
+
+        C, E, PA, mu, res = relinearize(Xbar, Ubar)
+        status = Status.MAX_ITER if math.isfinite(res) else Status.NONFINITE
+        hist_E, hist_res, steps = [E], [res], []
+        max_mu = _max(mu)
+        it = 0
+        while status is Status.MAX_ITER:
+            if res <= opts.tol:
+                status = Status.CONVERGED
+                break
+            if it >= opts.max_iter:
+                break
+            eps, accepted = float(opts.step_size), None
+            for trial in range(opts.max_backtracks + 1):
+                with np.errstate(all="ignore"):
+                    Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps)
+                    good = bool(np.isfinite(Xn).all() and np.isfinite(Un).all())
+                    if good and opts.max_state_step < math.inf:
+                        good = float(np.max(np.abs(Xn - Xbar))) <= opts.max_state_step
+                lin = None
+                if good and opts.line_search == "residual":
+                    lin = linearize(Xn, Un)
+                    good = lin[4] < res or (trial == opts.max_backtracks and math.isfinite(lin[4]))
+                if good:
+                    accepted = (Xn, Un, lin, eps)
+                    break
+                eps *= opts.backtrack
+            it += 1
+            if accepted is None:  # no usable step: more regularization, same trajectory
+                if not bump():
+                    status = Status.NONFINITE
+                    break
+                lin, eps = relinearize(Xbar, Ubar), 0.0
+            else:
+                Xbar, Ubar, lin, eps = accepted
+                mu_run = max(mu0, mu_run / 10.0)
+                if lin is None or not math.isfinite(lin[4]):
+                    lin = relinearize(Xbar, Ubar)
+            C, E, PA, mu, res = lin
+            steps.append(eps)
+            hist_E.append(E)
+            hist_res.append(res)
+            max_mu = max(max_mu, _max(mu))
+            if not math.isfinite(res):
+                status = Status.NONFINITE
+        x, u = from_stages(g, Xbar, Ubar)
+        grad_norm = math.nan
+        if not self.custom_costs:
+            grad_norm = (
+                float(np.max(np.abs(np.asarray(g.function("gradient")(u, p))))) if g.n_u else 0.0
+            )
+        return SolveResult(
+            solver="ilq",
+            controls=u,
+            states=x,
+            energy=np.float64(E),
+            agent_costs=np.asarray(C, float).reshape(-1),
+            status=status,
+            iterations=np.int64(it),
+            energy_history=np.asarray(hist_E, float),
+            grad_norm=np.float64(grad_norm),
+            wall_time=time.perf_counter() - t0,
+            info={
+                "gains": PA[:, :, : self.nx].copy(),
+                "feedforward": PA[:, :, self.nx].copy(),
+                "stationarity": res,
+                "residual_history": np.asarray(hist_res, float),
+                "step_sizes": np.asarray(steps, float),
+                "regularization": mu,
+                "max_regularization": max_mu,
+                "hessian": self.hessian,
+                "custom_costs": self.custom_costs,
+                "backend": "compiled" if opts.compiled else "numpy",
+                "options": opts,
+            },
+        )
+
+    def _numpy_backward(self, mu0, delta):
+        compiled, self._compiled = self._compiled, None
+        try:
+            return self.backward(mu0, delta)
+        finally:
+            self._compiled = compiled
+
+
+_MAX_MU = 1e8  # largest global regularization the adaptive retries reach
+
+
+def _max(a):
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return float(a.max()) if a.size else 0.0
+
+
+def _shift(g, delta):
+    """Shift of an own block with Gershgorin bound ``g`` that failed the pivot test.
+
+    ``delta - g`` lifts the smallest eigenvalue to ``>= delta``; negative curvature is
+    mirrored on top (``+ |g|``), so a concave direction gets curvature of its own size
+    instead of a near-singular ``delta`` (which would give gains of order ``1/delta``).
+    """
+    return np.maximum(delta - g, delta) + np.maximum(-g, 0.0)
+
+
+def _pivots_ok(H, delta):
+    try:
+        L = np.linalg.cholesky(H)
+    except np.linalg.LinAlgError:
+        return False
+    return bool(np.min(np.diag(L)) ** 2 >= delta) if L.size else True
+
+
+class _CompiledRiccati:
+    """The backward recursion as one generated-C function: a stage folded over ``K`` stages.
+
+    The stage function does the numpy recursion's algebra in CasADi SX with the structural
+    zeros of ``L_ik`` and ``Phi_k`` (union pattern over stages) and the same own-block shift
+    (closed ``LDL'`` pivots, Gershgorin). A stage whose coupled system is singular is not
+    retried inside; the caller sees non-finite gains and the numpy recursion takes over.
+    """
+
+    def __init__(self, s: ILQSolver):
+        from .codegen import compile_functions
+
+        self.s = s
+        K, N, nu, nx, n = s.K, s.N, s.nu, s.nx, s.n
+        # union pattern of the stage matrices L_ik (k < K), per player
+        lt = s._lam_tgt[s._lam_tgt < K * N * n * n]
+        rem = lt % (N * n * n)
+        pats = []
+        for i in range(N):
+            e = np.unique(rem[(rem // (n * n)) == i] % (n * n))
+            r, c = e // n, e % n
+            order = np.lexsort((r, c))  # column-major, CasADi's nonzero order
+            pats.append((r[order], c[order]))
+        self._lam_cols = np.concatenate(
+            [i * n * n + r * n + c for i, (r, c) in enumerate(pats)]
+        ).astype(np.intp)
+        pr = s._phi_pattern // n
+        pc = s._phi_pattern % n
+        order = np.lexsort((pr, pc))
+        self._phi_cols = s._phi_pattern[order].astype(np.intp)
+        pr, pc = pr[order], pc[order]
+
+        Zin = ca.SX.sym("Z", nx + 1, N * (nx + 1))
+        lam = ca.SX.sym("lam", self._lam_cols.size)
+        phi = ca.SX.sym("phi", self._phi_cols.size)
+        mu0 = ca.SX.sym("mu0")
+        delta = ca.SX.sym("delta")
+        Ph = ca.SX(ca.Sparsity.triplet(nx + 1, n, pr.tolist(), pc.tolist()), phi)
+        Ph = Ph + ca.SX(ca.Sparsity.triplet(nx + 1, n, [nx], [n - 1]), ca.SX(1.0))
+        Ts, off, mus = [], 0, []
+        for i, (r, c) in enumerate(pats):
+            L = ca.SX(ca.Sparsity.triplet(n, n, r.tolist(), c.tolist()), lam[off : off + r.size])
+            off += r.size
+            Z = Zin[:, i * (nx + 1) : (i + 1) * (nx + 1)]
+            T = L + ca.mtimes(Ph.T, ca.mtimes(Z, Ph))
+            s0, s1 = int(s.uo[i]), int(s.uo[i + 1])
+            H = T[s0:s1, s0:s1] + mu0 * ca.SX.eye(s1 - s0)
+            piv = _ldl_pivots(H)
+            ok = piv[0] >= delta
+            for d in piv[1:]:
+                ok = ca.logic_and(ok, d >= delta)
+            gersh = _gershgorin(H)
+            mu = ca.if_else(ok, 0, ca.fmax(delta - gersh, delta) + ca.fmax(-gersh, 0))
+            mus.append(mu0 + mu)
+            D = ca.SX(n, n)
+            D[s0:s1, s0:s1] = (mu0 + mu) * ca.SX.eye(s1 - s0)
+            Ts.append(T + D)
+        rows = ca.vertcat(*[Ts[i][int(s.uo[i]) : int(s.uo[i + 1]), :] for i in range(N)])
+        PA = ca.solve(rows[:, :nu], rows[:, nu:])
+        Psi = ca.vertcat(-PA, ca.SX.eye(nx + 1))
+        Zout = []
+        for T in Ts:
+            Zi = ca.mtimes(Psi.T, ca.mtimes(T, Psi))
+            Zout.append(0.5 * (Zi + Zi.T))
+        stage = ca.Function(
+            "ilq_riccati_stage",
+            [Zin, lam, phi, mu0, delta],
+            [ca.horzcat(*Zout), ca.vec(PA.T), ca.vertcat(*mus)],
+        )
+        acc = stage.mapaccum("ilq_riccati", K)  # CasADi may nest and rename it for large K
+        acc = ca.Function("ilq_riccati", acc.mx_in(), acc.call(acc.mx_in()))
+        self.n_instructions = stage.n_instructions()
+        f = compile_functions([acc], "ilq_riccati", optimize="-O1")["ilq_riccati"]
+        self.call = _Call(f)
+
+    def backward(self, mu0, delta):
+        s = self.s
+        K, N, nu, nx, n = s.K, s.N, s.nu, s.nx, s.n
+        Lam = s.Lam[: K * N * n * n].reshape(K, N * n * n)
+        LamK = s.Lam[K * N * n * n :].reshape(N, n, n)
+        t = s._term
+        Z = LamK[:, t[:, None], t[None, :]]  # (N, nx+1, nx+1) -> column-major (nx+1, N(nx+1))
+        Zc = np.ascontiguousarray(Z.transpose(0, 2, 1)).reshape(-1)
+        lam = Lam[::-1][:, self._lam_cols]
+        phi = s.Phi.reshape(K, -1)[::-1][:, self._phi_cols]
+        _, PA, mu = self.call(Zc, lam, phi, np.full(K, float(mu0)), np.full(K, float(delta)))
+        PA = PA.reshape(K, nu, nx + 1)[::-1].copy()
+        mu = mu.reshape(K, N)[::-1].copy()
+        ok = bool(np.isfinite(PA).all())
+        if not ok:  # singular stage: the numpy recursion retries with larger shifts
+            return s._numpy_backward(mu0, delta)
+        return PA, mu, ok
+
+
+def _ldl_pivots(H):
+    """Pivots of the ``LDL'`` factorization (no pivoting) of a small symmetric SX matrix."""
+    m = H.shape[0]
+    A = [[H[i, j] for j in range(m)] for i in range(m)]
+    piv = []
+    for j in range(m):
+        d = A[j][j]
+        piv.append(d)
+        for i in range(j + 1, m):
+            f = A[i][j] / d
+            for c in range(j + 1, m):
+                A[i][c] = A[i][c] - f * A[j][c]
+    return piv
+
+
+def _gershgorin(H):
+    m = H.shape[0]
+    lows = []
+    for i in range(m):
+        off = 0
+        for j in range(m):
+            if j != i:
+                off = off + ca.fabs(H[i, j])
+        lows.append(H[i, i] - off)
+    g = lows[0]
+    for v in lows[1:]:
+        g = ca.fmin(g, v)
+    return g
+
+
+# --------------------------------------------------------------------------------------
+# entry function
+# --------------------------------------------------------------------------------------
+def get_solver(
+    game: PotentialGame, costs: ca.Function | None = None, hessian: str = "auto"
+) -> ILQSolver:
+    """The cached :class:`ILQSolver` of ``game``, ``costs`` and ``hessian``, built on first use."""
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    # Kept on the game itself, so the solvers live exactly as long as the game (as
+    # solvers.ipopt does); the entry keeps ``costs`` alive, so its id is not reused.
+    per_game = game.__dict__.setdefault("_ilq_solvers", {})
+    key = (None if costs is None else id(costs), hessian)
+    hit = per_game.get(key)
+    if hit is None or hit[0] is not costs:
+        hit = (costs, ILQSolver(game, costs, hessian))
+        per_game[key] = hit
+    return hit[1]
+
+
+def solve_ilq(
+    game: PotentialGame,
+    p: np.ndarray,
+    u0: np.ndarray | None = None,
+    options: ILQOptions | dict | None = None,
+    costs: ca.Function | None = None,
+) -> SolveResult:
+    """Local feedback Nash equilibrium of ``game`` by iLQ (see the module docstring).
+
+    ``p``: ``(n_p,)`` or ``(B, n_p)``; ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if None);
+    ``costs``: ``None`` (the game's agent costs) or a ``casadi.Function (x, u, p) -> C``.
+    A batch is solved problem by problem and returned as one batched result.
+    """
+    opts = check_options(ILQOptions, options, "ilq")
+    solver = get_solver(game, costs, opts.hessian)
+    single = np.ndim(p) == 1 and (u0 is None or np.ndim(u0) == 1)
+    if single:
+        return solver.solve(p, u0, opts)
+    U, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)
+    t0 = time.perf_counter()
+    rs = [solver.solve(P[b], U[b], opts) for b in range(U.shape[0])]
+    return _stack(rs, time.perf_counter() - t0)
+
+
+def _stack(rs: list[SolveResult], wall: float) -> SolveResult:
+    S = max(r.energy_history.shape[0] for r in rs)
+    hist = np.stack(
+        [np.pad(r.energy_history, (0, S - r.energy_history.shape[0]), mode="edge") for r in rs],
+        axis=1,
+    )
+    status = np.empty(len(rs), dtype=object)
+    status[:] = [r.status for r in rs]
+    info: dict = {}
+    for key in ("gains", "feedforward", "regularization"):
+        info[key] = np.stack([r.info[key] for r in rs])
+    for key in ("stationarity", "max_regularization"):
+        info[key] = np.array([r.info[key] for r in rs])
+    info["residual_history"] = [r.info["residual_history"] for r in rs]
+    info["step_sizes"] = [r.info["step_sizes"] for r in rs]
+    info["custom_costs"] = rs[0].info["custom_costs"]
+    info["options"] = rs[0].info["options"]
+    return SolveResult(
+        solver="ilq",
+        controls=np.stack([r.controls for r in rs]),
+        states=np.stack([r.states for r in rs]),
+        energy=np.array([r.energy for r in rs], float),
+        agent_costs=np.stack([r.agent_costs for r in rs]),
+        status=status,
+        iterations=np.array([r.iterations for r in rs]),
+        energy_history=hist,
+        grad_norm=np.array([r.grad_norm for r in rs], float),
+        wall_time=wall,
+        info=info,
+    )

@@ -1,0 +1,353 @@
+"""Multi-modal solutions of one game: many sampled initial strategies, solve, cluster.
+
+Following Peters et al. (2020) and the RPI dataset construction (paper App. E.1): a game
+solved once gives one local equilibrium; solving it from many sampled initial strategies
+and clustering the converged joint trajectories gives its *modes* (e.g. passing left or
+right) and how often each is reached. Shapes follow :mod:`epo_casadi.game`.
+
+Steps of :func:`solve_multimodal`
+    1. **Sample** ``n_samples`` initial joint strategies with a seeded
+       ``numpy.random.Generator`` (:func:`sinusoid_sampler` unless ``sampler`` is given).
+    2. **Solve** each with iLQ (:func:`solvers.ilq.solve_ilq`, feedback Nash) or LM
+       (:func:`solvers.lm.solve_lm`, the potential minimizer; one batched call, by default
+       with the structured Riccati backend).
+    3. **Drop** failed solves (status not converged; ``accept_max_iter`` also keeps
+       ``max_iter``) and solves whose smallest pairwise centre distance over ``k = 1..K``
+       is below ``r_i + r_j - collision_tol``.
+    4. **Cluster** the kept solves (:class:`MultiModalOptions`, ``cluster``):
+       ``"distance"``: agglomerative clustering (``scipy.cluster.hierarchy``, ``linkage``)
+       of the joint position trajectories with the RMS distance
+       ``d(a, b) = sqrt(mean_{i,k} |p_a[i,k] - p_b[i,k]|^2)`` (metres), cut at
+       ``cluster_tol``; ``"passing"``: one mode per pattern of passing sides, the sign of
+       the angle swept by each pair's relative position ``p_j - p_i`` over the horizon
+       (sum of ``atan2(cross, dot)`` of consecutive relative positions; ``0`` when
+       ``|angle| < pass_angle``: the pair does not pass).
+    5. **Represent** each mode by its medoid (the member with the least summed distance to
+       the others; ties: lowest sample index) and its share of the kept solves; modes are
+       sorted by share (ties: lower mean energy, then first sample index).
+
+Everything is deterministic for a given ``seed``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from epo_casadi.dynamics import DoubleIntegrator
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+
+from .lm import check_options
+from .result import SolveResult, Status
+
+__all__ = [
+    "Mode",
+    "MultiModalOptions",
+    "MultiModalResult",
+    "passing_sides",
+    "sinusoid_sampler",
+    "solve_multimodal",
+    "trajectory_distances",
+]
+
+CLUSTERINGS = ("distance", "passing")
+LINKAGES = ("average", "complete", "single")
+
+
+@dataclass(frozen=True)
+class MultiModalOptions:
+    """Filtering and clustering of the solves (defaults: the RPI recipe)."""
+
+    cluster: str = "distance"  #: "distance" (RMS trajectory distance) or "passing" (sides)
+    cluster_tol: float = 0.3  #: distance clustering: cut height of the dendrogram (m, RMS)
+    linkage: str = "average"  #: distance clustering: "average", "complete" or "single"
+    pass_angle: float = 0.5  #: passing clustering: |swept angle| below this (rad) = no pass
+    collision_tol: float = 0.05  #: drop solves with a pair closer than r_i + r_j - this (m)
+    accept_max_iter: bool = False  #: also keep solves that stopped at max_iter
+
+    def __post_init__(self):
+        if self.cluster not in CLUSTERINGS:
+            raise SpecError(
+                "multimodal.cluster", f"expected one of {CLUSTERINGS}, got {self.cluster!r}"
+            )
+        if self.linkage not in LINKAGES:
+            raise SpecError(
+                "multimodal.linkage", f"expected one of {LINKAGES}, got {self.linkage!r}"
+            )
+        for name in ("cluster_tol", "pass_angle", "collision_tol"):
+            v = getattr(self, name)
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not math.isfinite(v)
+                or v < 0
+            ):
+                raise SpecError(f"multimodal.{name}", f"expected a finite number >= 0, got {v!r}")
+        if not isinstance(self.accept_max_iter, bool):
+            raise SpecError(
+                "multimodal.accept_max_iter",
+                f"expected True or False, got {self.accept_max_iter!r}",
+            )
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One mode: its representative (medoid) solve and how often it was reached."""
+
+    controls: np.ndarray  #: joint strategy ``u`` of the medoid, ``(n_u,)``
+    states: np.ndarray  #: its rolled-out states ``x``, ``(n_x,)``
+    share: float  #: fraction of the kept solves in this mode
+    cost: np.ndarray  #: the medoid's agent costs ``C_i``, ``(N,)``
+    energy: float  #: the medoid's potential ``E`` (nan for iLQ with custom costs)
+    members: np.ndarray  #: sample indices of the solves in this mode
+    medoid: int  #: sample index of the representative
+    passing: tuple[int, ...]  #: passing side of each pair ``(a < b)`` of the medoid, +1/-1/0
+
+
+@dataclass(frozen=True)
+class MultiModalResult:
+    """Modes of one game (sorted by share, largest first) and every solve behind them."""
+
+    modes: list[Mode]
+    labels: np.ndarray  #: mode index of every sample, ``-1`` for dropped ones, ``(n_samples,)``
+    kept: np.ndarray  #: which samples passed the filters, ``(n_samples,)``
+    results: SolveResult  #: all solves (batched), in sample order
+    initial_controls: np.ndarray  #: the sampled initial strategies, ``(n_samples, n_u)``
+    wall_time: float
+    info: dict = field(default_factory=dict)
+
+    @property
+    def shares(self) -> np.ndarray:
+        return np.array([m.share for m in self.modes])
+
+    def summary(self) -> str:
+        kept = int(self.kept.sum())
+        parts = ", ".join(f"{m.share:.2f} (passing {m.passing})" for m in self.modes)
+        return f"{len(self.modes)} modes from {kept}/{self.kept.size} kept solves: {parts}"
+
+
+# --------------------------------------------------------------------------------------
+# sampling
+# --------------------------------------------------------------------------------------
+def sinusoid_sampler(
+    game: PotentialGame, p: np.ndarray, n: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Feed-forward sinusoids (after GameInference.jl, Peters et al. 2020): ``(n, n_u)``.
+
+    With ``c_k = cos(k pi / K)`` and independent draws per sample and agent:
+
+    * heading models (unicycle: ``(a, omega)``; bicycle: ``(a, delta)``):
+      ``a_k = -0.05 c_k U(1.5, 2.5)`` and ``omega_k = c_k U(-15, 15) deg/s``
+      (bicycle: ``delta_k = c_k U(-5, 5) deg``);
+    * double integrator: the same longitudinal and a lateral ``0.5 c_k U(-1, 1) m/s^2``,
+      along and across the initial velocity (or the x axis when at rest).
+    """
+    K = game.K
+    c = np.cos(np.arange(K) * np.pi / K)
+    blocks = game.params.unpack(np.asarray(p, float))
+    out = np.zeros((n, game.n_u))
+    for s in range(n):
+        parts = []
+        for a in game.agents:
+            lon = -0.05 * c * rng.uniform(1.5, 2.5)
+            if isinstance(a.dynamics, DoubleIntegrator):
+                lat = 0.5 * c * rng.uniform(-1.0, 1.0)
+                x0 = blocks[f"x0.{a.name}"]
+                v = np.asarray(x0[2:4], float)
+                e = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-9 else np.array([1.0, 0.0])
+                lat_dir = np.array([-e[1], e[0]])
+                parts.append(lon[:, None] * e[None] + lat[:, None] * lat_dir[None])
+            else:
+                amp = 5.0 if a.dynamics.name == "bicycle" else 15.0
+                turn = c * np.deg2rad(rng.uniform(-amp, amp))
+                u = np.zeros((K, a.dynamics.nu))
+                u[:, 0] = lon
+                if a.dynamics.nu > 1:
+                    u[:, 1] = turn
+                parts.append(u)
+        out[s] = game.join_controls(parts)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# geometry of joint trajectories
+# --------------------------------------------------------------------------------------
+def trajectory_distances(game: PotentialGame, states: np.ndarray) -> np.ndarray:
+    """RMS position distance (m) between every two joint trajectories: ``(B, B)``."""
+    pos = game.positions(np.asarray(states))  # (B, N, K+1, 2)
+    flat = pos.reshape(pos.shape[0], -1)
+    sq = np.sum(flat**2, axis=1)
+    d2 = np.maximum(sq[:, None] + sq[None, :] - 2 * flat @ flat.T, 0.0)
+    d = np.sqrt(d2 / (pos.shape[1] * pos.shape[2]))
+    np.fill_diagonal(d, 0.0)
+    return 0.5 * (d + d.T)
+
+
+def _pairs(game: PotentialGame) -> list[tuple[int, int]]:
+    return [(a, b) for a in range(game.N) for b in range(a + 1, game.N)]
+
+
+def swept_angles(game: PotentialGame, states: np.ndarray) -> np.ndarray:
+    """Angle (rad) swept by ``p_b - p_a`` over the horizon, per pair ``a < b``: ``(..., n_pairs)``."""
+    pos = game.positions(np.asarray(states))  # (..., N, K+1, 2)
+    out = []
+    for a, b in _pairs(game):
+        rel = pos[..., b, :, :] - pos[..., a, :, :]
+        r0, r1 = rel[..., :-1, :], rel[..., 1:, :]
+        cross = r0[..., 0] * r1[..., 1] - r0[..., 1] * r1[..., 0]
+        dot = np.sum(r0 * r1, axis=-1)
+        out.append(np.sum(np.arctan2(cross, dot), axis=-1))
+    return np.stack(out, axis=-1) if out else np.zeros(np.shape(states)[:-1] + (0,))
+
+
+def passing_sides(game: PotentialGame, states: np.ndarray, pass_angle: float = 0.5) -> np.ndarray:
+    """Passing side per pair ``a < b``: ``+1`` (counter-clockwise), ``-1``, ``0`` (no pass)."""
+    ang = swept_angles(game, states)
+    return np.where(np.abs(ang) < pass_angle, 0, np.sign(ang)).astype(int)
+
+
+def min_clearance(game: PotentialGame, states: np.ndarray) -> np.ndarray:
+    """Smallest ``dist_ij - r_i - r_j`` over pairs and steps ``k = 1..K``: ``(...)``."""
+    pos = game.positions(np.asarray(states))
+    out = np.full(np.shape(states)[:-1], np.inf)
+    for a, b in _pairs(game):
+        d = np.linalg.norm(pos[..., a, 1:, :] - pos[..., b, 1:, :], axis=-1)
+        r = game.agents[a].radius + game.agents[b].radius
+        out = np.minimum(out, np.min(d, axis=-1) - r)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# the entry function
+# --------------------------------------------------------------------------------------
+def solve_multimodal(
+    game: PotentialGame,
+    p: np.ndarray,
+    n_samples: int = 16,
+    seed: int | np.random.SeedSequence | None = 0,
+    solver: str = "ilq",
+    options=None,
+    clustering: MultiModalOptions | dict | None = None,
+    sampler: Callable | None = None,
+    costs=None,
+) -> MultiModalResult:
+    """Solve ``game`` at ``p (n_p,)`` from ``n_samples`` sampled starts and cluster the modes.
+
+    ``solver``: ``"ilq"`` (``options``: :class:`solvers.ilq.ILQOptions`; ``costs``: custom
+    player costs, see :func:`solvers.ilq.solve_ilq`) or ``"lm"`` (``options``:
+    :class:`solvers.lm.LMOptions`; one batched solve). ``sampler(game, p, n, rng) ->
+    (n, n_u)`` replaces :func:`sinusoid_sampler`. See the module docstring for the steps.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
+        raise SpecError("n_samples", f"expected an integer >= 1, got {n_samples!r}")
+    if solver not in ("ilq", "lm"):
+        raise SpecError("solver", f"expected 'ilq' or 'lm', got {solver!r}")
+    if costs is not None and solver != "ilq":
+        raise SpecError("costs", "custom player costs need solver='ilq'")
+    mm = check_options(MultiModalOptions, clustering, "multimodal")
+    n = int(n_samples)
+    p = np.asarray(p, dtype=float)
+    if p.shape != (game.n_p,):
+        raise SpecError(
+            "p", f"expected one parameter vector of {game.n_p} entries, got shape {p.shape}"
+        )
+    rng = np.random.default_rng(seed)
+    U0 = np.asarray((sampler or sinusoid_sampler)(game, p, n, rng), dtype=float)
+    if U0.shape != (n, game.n_u):
+        raise SpecError(
+            "sampler", f"expected initial strategies of shape ({n}, {game.n_u}), got {U0.shape}"
+        )
+    P = np.broadcast_to(p, (n, game.n_p))
+    if solver == "ilq":
+        from .ilq import solve_ilq
+
+        res = solve_ilq(game, P, U0, options=options, costs=costs)
+    else:
+        from .lm import LMOptions, solve_lm
+
+        res = solve_lm(
+            game, P, U0, options=LMOptions(backend="structured") if options is None else options
+        )
+
+    status = np.asarray(res.status, dtype=object).reshape(n)
+    good = np.array(
+        [s is Status.CONVERGED or (mm.accept_max_iter and s is Status.MAX_ITER) for s in status]
+    )
+    finite = np.isfinite(res.controls).all(axis=1) & np.isfinite(res.states).all(axis=1)
+    clearance = min_clearance(game, res.states)
+    kept = good & finite & (clearance >= -mm.collision_tol)
+    idx = np.nonzero(kept)[0]
+    labels = np.full(n, -1, dtype=int)
+    modes: list[Mode] = []
+    sides = passing_sides(game, res.states, mm.pass_angle) if game.N > 1 else np.zeros((n, 0), int)
+    if idx.size:
+        D = trajectory_distances(game, res.states[idx])
+        if mm.cluster == "passing":
+            keys = [tuple(int(v) for v in sides[i]) for i in idx]
+            uniq = sorted(set(keys))
+            raw = np.array([uniq.index(k) for k in keys])
+        else:
+            raw = _agglomerate(D, mm.cluster_tol, mm.linkage)
+        energy = np.asarray(res.energy, float).reshape(n)
+        groups = []
+        for c in np.unique(raw):
+            loc = np.nonzero(raw == c)[0]
+            sub = D[np.ix_(loc, loc)]
+            med = loc[int(np.argmin(sub.sum(axis=1)))]  # argmin: first index on ties
+            mean_e = (
+                float(np.mean(energy[idx[loc]]))
+                if np.all(np.isfinite(energy[idx[loc]]))
+                else math.inf
+            )
+            groups.append((-loc.size, mean_e, int(idx[loc[0]]), loc, med))
+        groups.sort(key=lambda g: g[:3])
+        for m, (_, _, _, loc, med) in enumerate(groups):
+            labels[idx[loc]] = m
+            j = int(idx[med])
+            modes.append(
+                Mode(
+                    controls=np.array(res.controls[j]),
+                    states=np.array(res.states[j]),
+                    share=loc.size / idx.size,
+                    cost=np.array(res.agent_costs[j]),
+                    energy=float(energy[j]),
+                    members=idx[loc].copy(),
+                    medoid=j,
+                    passing=tuple(int(v) for v in sides[j]),
+                )
+            )
+    return MultiModalResult(
+        modes=modes,
+        labels=labels,
+        kept=kept,
+        results=res,
+        initial_controls=U0,
+        wall_time=time.perf_counter() - t0,
+        info={
+            "solver": solver,
+            "clustering": mm,
+            "clearance": clearance,
+            "passing": sides,
+            "dropped_failed": int((~(good & finite)).sum()),
+            "dropped_collision": int((good & finite & (clearance < -mm.collision_tol)).sum()),
+        },
+    )
+
+
+def _agglomerate(D: np.ndarray, tol: float, method: str) -> np.ndarray:
+    """Flat clusters of a distance matrix cut at ``tol`` (deterministic)."""
+    if D.shape[0] == 1:
+        return np.zeros(1, dtype=int)
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    Z = linkage(squareform(D, checks=False), method=method)
+    return fcluster(Z, t=tol, criterion="distance").astype(int)

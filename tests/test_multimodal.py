@@ -1,0 +1,126 @@
+"""Multi-modal solves (solvers.multimodal): modes of a symmetric crossing, filters, determinism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from epo_casadi import SpecError
+from solvers.multimodal import (
+    MultiModalOptions,
+    passing_sides,
+    sinusoid_sampler,
+    solve_multimodal,
+    trajectory_distances,
+)
+from solvers.result import Status
+
+from .helpers import crossing_game
+
+N_SAMPLES = 32
+
+
+@pytest.fixture(scope="module")
+def head_on():
+    """Two unicycles head-on on the x axis, goals mirrored: passing left or right is equally
+    good (the game is symmetric under y -> -y), and the sampler is symmetric too."""
+    g = crossing_game(N=2, K=40, offset=0.0)
+    p = g.default_params()
+    return g, p, solve_multimodal(g, p, n_samples=N_SAMPLES, seed=0)
+
+
+def mirror(pos):
+    out = pos.copy()
+    out[..., 1] *= -1
+    return out
+
+
+def test_symmetric_crossing_has_two_equal_modes(head_on):
+    g, p, res = head_on
+    assert res.kept.all() and len(res.modes) == 2
+    a, b = res.modes
+    # each share is Binomial(32, 1/2) / 32 by symmetry (std 0.09): near 0.5
+    assert a.share + b.share == pytest.approx(1.0)
+    assert abs(a.share - 0.5) <= 0.2 and a.share >= b.share
+    # opposite passing sides, by the swept angle of the relative position (about +-pi)
+    assert a.passing == (-b.passing[0],) and a.passing[0] != 0
+    assert passing_sides(g, a.states)[0] == a.passing[0]
+    # the two representatives are mirror images with equal costs (converged to 1e-5)
+    pa, pb = g.positions(a.states), g.positions(b.states)
+    np.testing.assert_allclose(pa, mirror(pb), atol=1e-3)
+    np.testing.assert_allclose(a.cost, b.cost, rtol=1e-4)
+    # the modes are far apart, the members of a mode close together
+    D = trajectory_distances(g, res.results.states)
+    within = max(D[np.ix_(m.members, m.members)].max() for m in res.modes)
+    across = D[np.ix_(a.members, b.members)].min()
+    assert within < 0.01 < 0.3 < across
+    # labels and members agree; the medoid is a member and its own solve
+    for m_idx, m in enumerate(res.modes):
+        assert set(np.nonzero(res.labels == m_idx)[0]) == set(m.members) and m.medoid in m.members
+        np.testing.assert_array_equal(m.controls, res.results.controls[m.medoid])
+        assert res.results[m.medoid].status is Status.CONVERGED
+
+
+def test_passing_clustering_agrees(head_on):
+    g, p, res = head_on
+    by_side = solve_multimodal(g, p, n_samples=N_SAMPLES, seed=0, clustering={"cluster": "passing"})
+    np.testing.assert_array_equal(by_side.labels, res.labels)
+    assert [m.share for m in by_side.modes] == [m.share for m in res.modes]
+
+
+def test_deterministic_for_a_seed(head_on):
+    g, p, res = head_on
+    again = solve_multimodal(g, p, n_samples=N_SAMPLES, seed=0)
+    np.testing.assert_array_equal(again.initial_controls, res.initial_controls)
+    np.testing.assert_array_equal(again.labels, res.labels)
+    for m, n in zip(again.modes, res.modes, strict=True):
+        np.testing.assert_array_equal(m.controls, n.controls)
+        assert m.share == n.share and m.medoid == n.medoid
+    other = sinusoid_sampler(g, p, N_SAMPLES, np.random.default_rng(1))
+    assert not np.allclose(other, res.initial_controls)
+
+
+def test_sampler_shape_and_amplitudes(head_on):
+    g, p, res = head_on
+    U = res.initial_controls
+    assert U.shape == (N_SAMPLES, g.n_u)
+    for u in g.split_controls(U):  # (B, K, 2): acceleration, turn rate
+        c = np.cos(np.arange(g.K) * np.pi / g.K)
+        acc_amp = u[:, 0, 0] / -0.05  # c_0 = 1: the drawn amplitudes
+        turn_amp = u[:, 0, 1]
+        np.testing.assert_allclose(u[:, :, 0], acc_amp[:, None] * -0.05 * c[None])
+        np.testing.assert_allclose(u[:, :, 1], turn_amp[:, None] * c[None])
+        assert np.all((acc_amp >= 1.5) & (acc_amp <= 2.5))
+        assert np.all(np.abs(turn_amp) <= np.deg2rad(15.0))
+        assert (turn_amp > 0).any() and (turn_amp < 0).any()
+
+
+def test_lm_variant_finds_the_same_modes(head_on):
+    g, p, res = head_on
+    lm = solve_multimodal(g, p, n_samples=8, seed=0, solver="lm")
+    assert lm.info["solver"] == "lm" and lm.results.solver == "lm" and lm.kept.all()
+    assert sorted(m.passing for m in lm.modes) == [(-1,), (1,)]
+
+
+def test_colliding_solves_are_dropped():
+    """Without the collision term the agents drive through each other: every solve is
+    dropped by the clearance filter and no mode is left."""
+    g = crossing_game(N=2, K=40, offset=0.0)
+    p = g.params.pack({"w.a0-a1.collision": 0.0})
+    res = solve_multimodal(g, p, n_samples=4, seed=0)
+    assert res.info["dropped_collision"] == 4 and res.modes == [] and (res.labels == -1).all()
+    assert np.all(res.info["clearance"] < -0.05)
+
+
+def test_inputs_are_checked(head_on):
+    g, p, _ = head_on
+    with pytest.raises(SpecError, match="solver"):
+        solve_multimodal(g, p, n_samples=2, solver="ipopt")
+    with pytest.raises(SpecError, match="n_samples"):
+        solve_multimodal(g, p, n_samples=0)
+    with pytest.raises(SpecError, match="multimodal: unknown option"):
+        solve_multimodal(g, p, n_samples=2, clustering={"tol": 1})
+    with pytest.raises(SpecError, match="multimodal.cluster"):
+        MultiModalOptions(cluster="kmeans")
+    with pytest.raises(SpecError, match="sampler"):
+        solve_multimodal(g, p, n_samples=2, sampler=lambda game, p, n, rng: np.zeros((n, 3)))
