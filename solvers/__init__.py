@@ -9,9 +9,10 @@ from .lm import LMOptions, solve_lm
 from .multimodal import MultiModalOptions, MultiModalResult, solve_multimodal
 from .nash import NashCertificate, NashOptions, nash_certificate
 from .result import SolveResult, Status
+from .structured import StructuredGN
 
 __all__ = [
     "ILQOptions", "MultiModalOptions", "MultiModalResult", "solve_ilq", "solve_multimodal",
-    "IpoptOptions", "IpoptSolver", "LMOptions", "NashCertificate", "NashOptions", "SolveResult",
+    "IpoptOptions", "IpoptSolver", "StructuredGN", "LMOptions", "NashCertificate", "NashOptions", "SolveResult",
     "Status", "nash_certificate", "solve_ipopt", "solve_lm",
 ]

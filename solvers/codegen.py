@@ -1,0 +1,151 @@
+"""Opt-in generated C for small CasADi functions, compiled once and cached on disk.
+
+:func:`compile_functions` writes the C code of a few :class:`casadi.Function` objects
+into one file (``casadi.CodeGenerator``), compiles it into a shared library with the
+system C compiler (a ``subprocess`` call) and loads every function back with
+``casadi.external``. The loaded functions have the same names, inputs, outputs and
+sparsity as the originals and work with :class:`solvers.batch.BatchFunction` (``map``
+with threads) like interpreted ones.
+
+Cache
+    The library is stored as ``<name>_<hash>.so`` in ``directory``, else
+    ``$EPO_CACHE_DIR``, else ``~/.cache/epo``. ``hash`` covers the CasADi version, the
+    compiler's name, the flags and every function's serialization, so a changed game,
+    feature or compiler gives a new file and an unchanged one is loaded without compiling.
+    Files are written under a temporary name and renamed, so two processes compiling the
+    same functions at once do not read a half-written library.
+
+Keep what you compile small: residuals, partial Jacobians, stage functions. Compile time
+grows faster than linearly with the size of the expression graph: a symbolic dense ``J'J``
+of a 160-control game took minutes, the structured backend's functions
+(:mod:`solvers.structured`) take a few seconds for 2 agents (``-O1``) and about half a
+minute for 12 (``-O0``). ``optimize`` picks the gcc level; ``"auto"`` uses ``-O1`` up to
+:data:`AUTO_O1_LIMIT` instructions and ``-O0`` above. ``-O0`` code of a very long function
+is about as fast as CasADi's interpreter, so for large games compiling buys little.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import casadi as ca
+
+from epo_casadi.errors import EpoError, SpecError
+
+__all__ = [
+    "AUTO_O1_LIMIT",
+    "CompilerError",
+    "cache_dir",
+    "compile_functions",
+    "find_compiler",
+]
+
+#: ``optimize="auto"`` compiles with ``-O1`` up to this many CasADi instructions (summed
+#: over the functions), ``-O0`` above (gcc's optimizer is superlinear on long functions).
+AUTO_O1_LIMIT = 60_000
+
+
+class CompilerError(EpoError, RuntimeError):
+    """No C compiler was found, or compiling the generated code failed."""
+
+
+def cache_dir(directory: str | os.PathLike | None = None) -> Path:
+    """The cache folder: ``directory``, else ``$EPO_CACHE_DIR``, else ``~/.cache/epo``."""
+    if directory is not None:
+        d = Path(directory)
+    elif os.environ.get("EPO_CACHE_DIR"):
+        d = Path(os.environ["EPO_CACHE_DIR"])
+    else:
+        d = Path.home() / ".cache" / "epo"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def find_compiler() -> str:
+    """Path of the C compiler: ``$CC``, else the first of ``gcc``, ``cc``, ``clang`` found.
+
+    Raises :class:`CompilerError` when there is none.
+    """
+    candidates = [os.environ["CC"]] if os.environ.get("CC") else ["gcc", "cc", "clang"]
+    for c in candidates:
+        path = shutil.which(c)
+        if path:
+            return path
+    raise CompilerError(
+        f"no C compiler found (looked for {', '.join(candidates)}); install gcc or set CC, "
+        "or use the interpreted functions (compiled=False)"
+    )
+
+
+def _flags(funcs: Sequence[ca.Function], optimize: str) -> list[str]:
+    if optimize == "auto":
+        n = sum(f.n_instructions() for f in funcs)
+        optimize = "-O1" if n <= AUTO_O1_LIMIT else "-O0"
+    if optimize not in ("-O0", "-O1", "-O2", "-O3", "-Os"):
+        raise SpecError(
+            "optimize", f"expected 'auto', '-O0', '-O1', '-O2', '-O3' or '-Os', got {optimize!r}"
+        )
+    return [optimize, "-fPIC", "-shared"]
+
+
+def compile_functions(
+    funcs: list[ca.Function],
+    name: str,
+    directory: str | os.PathLike | None = None,
+    *,
+    optimize: str = "auto",
+) -> dict[str, ca.Function]:
+    """Generate C for ``funcs``, compile (or reuse the cached library) and load them.
+
+    ``name`` is the library's base name (a C identifier); the result maps each function's
+    name to its compiled ``casadi.external`` counterpart. Function names must be unique.
+    See the module docstring for the cache and ``optimize``.
+    """
+    funcs = list(funcs)
+    if not funcs:
+        raise SpecError("funcs", "expected at least one casadi.Function")
+    for f in funcs:
+        if not isinstance(f, ca.Function):
+            raise SpecError("funcs", f"expected casadi.Function objects, got {type(f).__name__}")
+    names = [f.name() for f in funcs]
+    if len(set(names)) != len(names):
+        raise SpecError("funcs", f"function names must be unique, got {names}")
+    if not name.isidentifier():
+        raise SpecError("name", f"expected a C identifier, got {name!r}")
+    cc = find_compiler()
+    flags = _flags(funcs, optimize)
+    h = hashlib.sha256()
+    for part in (ca.__version__, os.path.basename(cc), " ".join(flags)):
+        h.update(part.encode())
+        h.update(b"\0")
+    for f in funcs:
+        h.update(f.serialize().encode())
+        h.update(b"\0")
+    folder = cache_dir(directory)
+    lib = folder / f"{name}_{h.hexdigest()[:20]}.so"
+    if not lib.exists():
+        _build(funcs, name, cc, flags, folder, lib)
+    return {n: ca.external(n, str(lib)) for n in names}
+
+
+def _build(funcs, name, cc, flags, folder: Path, lib: Path) -> None:
+    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}_") as tmp:
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        for f in funcs:
+            cg.add(f)
+        cg.generate(tmp + os.sep)
+        src = os.path.join(tmp, f"{name}.c")
+        out = os.path.join(tmp, f"{name}.so")
+        cmd = [cc, *flags, "-o", out, src, "-lm"]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise CompilerError(
+                f"compiling {name}.c failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}"
+            )
+        os.replace(out, lib)  # atomic: readers see the old state or the whole library
