@@ -1,0 +1,63 @@
+"""Training objectives (paper Sec. 4.3 and App. F.4).
+
+``L = lambda_1 L_imit + lambda_2 L_goal + lambda_3 L_prob`` with the paper's weights
+``(1, 0.1, 0.1)`` for ours. ``L_imit`` is the minSADE loss: the joint mode closest to
+the ground truth, ``min_m 1/N sum_i mean_t ||x^m_{i,t} - x^GT_{i,t}||^2`` (the paper's
+squared norm of the trajectory difference, averaged over steps so that its scale does
+not depend on the horizon). ``L_prob`` is the cross entropy of the scene
+probabilities with that closest mode as the target. In RPI the goals are given, so
+``L_goal`` is zero. The SC baseline uses ``L_imit + L_prob`` (paper Sec. 5); the
+marginal V-LSTM uses per-agent minADE plus a per-agent classification loss.
+
+Shapes follow :mod:`learning.metrics`: ``pos`` ``(B, M, N, T, 2)``, ``gt`` ``(B, N, T, 2)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["LossWeights", "scene_loss", "marginal_loss"]
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    imitation: float = 1.0  #: lambda_1
+    goal: float = 0.1  #: lambda_2 (no goal loss in RPI: goals are given)
+    probability: float = 0.1  #: lambda_3
+
+
+def scene_loss(pos, logits, gt, weights: LossWeights = LossWeights(), mask=None) -> dict[str, torch.Tensor]:
+    """Joint (scene-level) loss; returns the total and its parts (means over the batch)."""
+    sq = ((pos - gt[:, None]) ** 2).sum(-1).mean(-1)  # (B, M, N)
+    if mask is not None:
+        m = mask[:, None].to(sq.dtype)
+        per_mode = (sq * m).sum(-1) / m.sum(-1).clamp_min(1)
+    else:
+        per_mode = sq.mean(-1)  # (B, M)
+    best = per_mode.argmin(dim=1)
+    imit = per_mode.gather(1, best[:, None]).mean()
+    prob = F.cross_entropy(logits, best)
+    total = weights.imitation * imit + weights.probability * prob
+    return {"loss": total, "imitation": imit, "probability": prob}
+
+
+def marginal_loss(pos, logits, gt, weights: LossWeights = LossWeights(probability=1.0), mask=None) -> dict[str, torch.Tensor]:
+    """Marginal loss: per agent the closest mode's ADE, plus classification of that mode.
+
+    ``logits`` are per agent, ``(B, N, M)``.
+    """
+    ade = torch.linalg.vector_norm(pos - gt[:, None], dim=-1).mean(-1)  # (B, M, N)
+    best = ade.argmin(dim=1)  # (B, N)
+    imit_agent = ade.gather(1, best[:, None]).squeeze(1)  # (B, N)
+    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), best.reshape(-1), reduction="none").reshape(best.shape)
+    if mask is not None:
+        m = mask.to(ade.dtype)
+        imit = (imit_agent * m).sum() / m.sum().clamp_min(1)
+        cls = (ce * m).sum() / m.sum().clamp_min(1)
+    else:
+        imit, cls = imit_agent.mean(), ce.mean()
+    total = weights.imitation * imit + weights.probability * cls
+    return {"loss": total, "imitation": imit, "probability": cls}

@@ -1,0 +1,292 @@
+"""Networks: observation encoders, parameter decoders and the three predictors.
+
+Shapes: ``B`` scenes, ``N`` agents, ``H+1`` history steps (the last is the current
+step), ``M`` modes, ``K`` future steps. A scene batch is a dict of tensors:
+
+- ``history``: ``(B, H+1, N, 4)`` past states ``(x, y, v, theta)`` (only ``x, y`` are
+  observed by the encoders, as in the paper; the current full state is the game's
+  initial state);
+- ``goals``: ``(B, N, 2)`` goal positions (given in RPI, paper App. F.3);
+- ``lanes`` (optional): ``(B, L, P, 2)`` lane polylines, ``lanes_mask`` ``(B, L)``.
+
+Encoders (paper App. F.1): every agent's history is a polyline of vectors
+``(start xy, end xy, time)``; a 3-layer LSTM of width 64 encodes it (V-LSTM); lanes go
+through a PointNet-like encoder (3 layers, width 64, max-pool); a global interaction
+graph of width 128 updates the agent features with one attention layer over agents
+and lanes (``backbone="vlstm"``) or with the two-stage map-then-agent attention
+(``backbone="vibes"``).
+
+Predictors (:func:`build_model`):
+
+- ``"epo"`` (ours): an agent-weight decoder (per agent, shared, positive), an
+  interaction-weight decoder (all agents' features), an initial-strategy decoder (per
+  agent, shared) feed the differentiable game layer (:mod:`learning.layer`), which runs
+  ``S`` LM steps on all ``B x M`` problems; a scene-probability decoder reads
+  ``[all agents' features, optimized states]``. Ablations: ``learned_init=False``
+  (zeros as initial strategies), ``goal_features=False`` (the goal term's weight is
+  fixed to zero, so the game has no goal feature).
+- ``"sc"`` (V-LSTM + SC): the same encoder; controls are decoded directly per mode and
+  rolled out through the same dynamics (no game), trained with the scene loss.
+- ``"vlstm"`` (V-LSTM marginal): per agent ``M`` position trajectories and per-agent mode
+  logits, trained with the marginal minADE loss plus classification.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from epo_casadi.game import PotentialGame
+from solvers.lm import LMOptions
+
+__all__ = ["ModelConfig", "build_model", "EPOModel", "SCModel", "VLSTMModel", "Encoder", "rollout_torch"]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture and layer settings (defaults: paper App. F.1, F.3)."""
+
+    kind: str = "epo"  #: "epo" (ours), "sc" (V-LSTM + SC), "vlstm" (V-LSTM marginal)
+    modes: int = 2  #: M joint modes (RPI: 2)
+    backbone: str = "vlstm"  #: "vlstm" (one attention layer) or "vibes" (map-then-agent attention)
+    hist_width: int = 64  #: LSTM width
+    hist_layers: int = 3  #: LSTM depth
+    lane_width: int = 64  #: PointNet lane encoder width (3 layers)
+    global_width: int = 128  #: width of the global interaction graph
+    heads: int = 4  #: attention heads
+    dec_width: int = 64  #: width of the 3-layer decoder MLPs
+    lm_steps: int = 2  #: S, LM steps in the game layer
+    step_size: float = 0.3  #: alpha
+    damping: float = 10.0  #: lambda
+    learned_init: bool = True  #: ablation: False uses zeros as initial strategies
+    goal_features: bool = True  #: ablation: False removes the goal term (weight 0)
+    backward: str = "unrolled"  #: game layer backward mode
+
+    def __post_init__(self):
+        if self.kind not in ("epo", "sc", "vlstm"):
+            raise ValueError(f"model.kind: expected 'epo', 'sc' or 'vlstm', got {self.kind!r}")
+        if self.backbone not in ("vlstm", "vibes"):
+            raise ValueError(f"model.backbone: expected 'vlstm' or 'vibes', got {self.backbone!r}")
+        if not (isinstance(self.modes, int) and self.modes >= 1):
+            raise ValueError(f"model.modes: expected an integer >= 1, got {self.modes!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = i
+    for _ in range(layers - 1):
+        mods.append(nn.Linear(d, width))
+        if norm == "layer":
+            mods.append(nn.LayerNorm(width))
+        mods.append(nn.ReLU())
+        d = width
+    mods.append(nn.Linear(d, o))
+    return nn.Sequential(*mods)
+
+
+class Encoder(nn.Module):
+    """History LSTM + PointNet lanes + global interaction graph -> agent features ``(B, N, W)``."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.lstm = nn.LSTM(5, cfg.hist_width, num_layers=cfg.hist_layers, batch_first=True)
+        self.lane = mlp(4, cfg.lane_width, cfg.lane_width, norm="layer")
+        self.agent_proj = nn.Linear(cfg.hist_width, cfg.global_width)
+        self.lane_proj = nn.Linear(cfg.lane_width, cfg.global_width)
+        W, h = cfg.global_width, cfg.heads
+        self.attn = nn.MultiheadAttention(W, h, batch_first=True)
+        self.norm = nn.LayerNorm(W)
+        if cfg.backbone == "vibes":
+            self.attn2 = nn.MultiheadAttention(W, h, batch_first=True)
+            self.norm2 = nn.LayerNorm(W)
+
+    def forward(self, scene: dict) -> torch.Tensor:
+        hist = scene["history"][..., :2]  # (B, H+1, N, 2)
+        B, T1, N, _ = hist.shape
+        origin = hist[:, -1:].mean(dim=2, keepdim=True)  # scene-centred coordinates
+        h = hist - origin
+        vec = torch.cat([h[:, :-1], h[:, 1:]], dim=-1)  # (B, H, N, 4)
+        t = torch.linspace(-1, 0, T1 - 1, dtype=h.dtype, device=h.device)[None, :, None, None].expand(B, -1, N, 1)
+        seq = torch.cat([vec, t], -1).permute(0, 2, 1, 3).reshape(B * N, T1 - 1, 5)
+        _, (hn, _) = self.lstm(seq)
+        z = self.agent_proj(hn[-1].reshape(B, N, -1))  # (B, N, W)
+        lanes = scene.get("lanes")
+        if lanes is not None:
+            lanes = lanes - origin[:, :, None]
+            lv = torch.cat([lanes[:, :, :-1], lanes[:, :, 1:]], -1)  # (B, L, P-1, 4)
+            lz = self.lane_proj(self.lane(lv).max(dim=2).values)  # (B, L, W)
+            lmask = scene.get("lanes_mask")
+        else:
+            lz, lmask = z[:, :0], None
+        if self.cfg.backbone == "vlstm":
+            kv = torch.cat([z, lz], 1)
+            pad = None
+            if lmask is not None:
+                pad = torch.cat([torch.zeros(B, N, dtype=torch.bool, device=z.device), ~lmask.bool()], 1)
+            out, _ = self.attn(z, kv, kv, key_padding_mask=pad)
+            return self.norm(z + out)
+        # vibes: agents attend to the map, then to each other
+        if lz.shape[1]:
+            out, _ = self.attn(z, lz, lz, key_padding_mask=None if lmask is None else ~lmask.bool())
+            z = self.norm(z + out)
+        out, _ = self.attn2(z, z, z)
+        return self.norm2(z + out)
+
+
+def rollout_torch(x0: torch.Tensor, U: torch.Tensor, dt: float, dynamics: str = "unicycle") -> torch.Tensor:
+    """Euler rollout in torch: ``x0`` ``(..., 4)``, ``U`` ``(..., K, 2)`` -> states ``(..., K, 4)`` at 1..K.
+
+    The same equations as :mod:`epo_casadi.dynamics` (unicycle or double integrator),
+    used by the SC baseline, which predicts controls without a game.
+    """
+    xs = []
+    x = x0
+    for k in range(U.shape[-2]):
+        a, w = U[..., k, 0], U[..., k, 1]
+        if dynamics == "unicycle":
+            px, py, v, th = x.unbind(-1)
+            x = torch.stack([px + v * torch.cos(th) * dt, py + v * torch.sin(th) * dt, v + a * dt, th + w * dt], -1)
+        elif dynamics == "double_integrator":
+            px, py, vx, vy = x.unbind(-1)
+            x = torch.stack([px + vx * dt, py + vy * dt, vx + a * dt, vy + w * dt], -1)
+        else:
+            raise ValueError(f"dynamics: expected 'unicycle' or 'double_integrator', got {dynamics!r}")
+        xs.append(x)
+    return torch.stack(xs, -2)
+
+
+class _Base(nn.Module):
+    def __init__(self, cfg: ModelConfig, game: PotentialGame):
+        super().__init__()
+        kinds = {a.dynamics.name for a in game.agents}
+        if len(kinds) != 1 or len(set(game.nu)) != 1:
+            raise ValueError("game: the decoders are shared across agents, so all agents need the same dynamics")
+        self.cfg, self.game = cfg, game
+        self.N, self.K, self.nu = game.N, game.K, game.nu[0]
+        self.dynamics = game.agents[0].dynamics.name
+        self.encoder = Encoder(cfg)
+        W, M = cfg.global_width, cfg.modes
+        self.prob = nn.Sequential(
+            nn.Linear(self.N * W + self.N * self.K * 2, 16 * M), nn.BatchNorm1d(16 * M), nn.ReLU(),
+            nn.Linear(16 * M, 16 * M), nn.BatchNorm1d(16 * M), nn.ReLU(), nn.Linear(16 * M, 1),
+        )
+
+    def scene_logits(self, z: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """Scene-probability decoder on ``[z_all, X^m]`` for every mode -> logits ``(B, M)``."""
+        B, M = pos.shape[:2]
+        zin = z.reshape(B, 1, -1).expand(B, M, -1)
+        inp = torch.cat([zin, (pos - pos[:, :, :, :1]).reshape(B, M, -1)], -1).reshape(B * M, -1)
+        return self.prob(inp.to(z.dtype)).reshape(B, M)
+
+
+class EPOModel(_Base):
+    """Ours: decoders -> game layer (S LM steps on B x M problems) -> scene probabilities."""
+
+    def __init__(self, cfg: ModelConfig, game: PotentialGame):
+        super().__init__(cfg, game)
+        from .layer import GameLayer
+
+        L = game.params
+        self.own_idx = torch.as_tensor(L.group("w_own"))
+        self.pair_idx = torch.as_tensor(L.group("w_pair"))
+        self.n_own = len(self.own_idx) // self.N
+        if self.n_own * self.N != len(self.own_idx):
+            raise ValueError("game: every agent needs the same own features")
+        self.goal_w = [L[f"w.{a}.goal"].start for a in game.agent_names if f"w.{a}.goal" in L]
+        W, M, w = cfg.global_width, cfg.modes, cfg.dec_width
+        self.own_dec = nn.Sequential(mlp(W, w, M * self.n_own), nn.Softplus())
+        self.pair_dec = nn.Sequential(mlp(self.N * W, w, M * len(self.pair_idx), norm="layer"), nn.Softplus())
+        self.init_dec = mlp(W, w, M * self.K * self.nu, norm="layer")
+        opts = LMOptions.paper(steps=cfg.lm_steps, step_size=cfg.step_size, damping=cfg.damping)
+        if cfg.backward == "implicit":
+            opts = LMOptions(steps=max(cfg.lm_steps, 50), step_size=1.0, damping=cfg.damping, adaptive_damping=False)
+        self.layer = GameLayer(game, opts, backward=cfg.backward)
+        self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
+
+    def game_params(self, scene: dict, z: torch.Tensor) -> torch.Tensor:
+        """Parameters ``(B, M, n_p)``: current states and goals from the scene, predicted weights."""
+        B, M, N = z.shape[0], self.cfg.modes, self.N
+        L = self.game.params
+        p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
+        cur = scene["history"][:, -1]  # (B, N, 4)
+        for i, a in enumerate(self.game.agent_names):
+            p[..., L[f"x0.{a}"].slice] = cur[:, None, i].to(z.dtype)
+            if f"goal.{a}" in L:
+                p[..., L[f"goal.{a}"].slice] = scene["goals"][:, None, i].to(z.dtype)
+        w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
+        w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
+        p = p.index_copy(-1, self.own_idx.to(z.device), w_own)
+        p = p.index_copy(-1, self.pair_idx.to(z.device), w_pair)
+        if not self.cfg.goal_features and self.goal_w:
+            p[..., self.goal_w] = 0.0
+        return p
+
+    def forward(self, scene: dict) -> dict:
+        z = self.encoder(scene)
+        B, M = z.shape[0], self.cfg.modes
+        p = self.game_params(scene, z)
+        u0 = self.init_dec(z).reshape(B, self.N, M, self.K * self.nu).permute(0, 2, 1, 3).reshape(B, M, -1)
+        if not self.cfg.learned_init:
+            u0 = torch.zeros_like(u0)
+        out = self.layer(p.double(), u0.double())
+        x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0
+        pos = x[..., :2]
+        init_pos = rollout_torch(scene["history"][:, -1][:, None].to(z.dtype).expand(B, M, -1, -1),
+                                 u0.reshape(B, M, self.N, self.K, self.nu), self.game.dt, self.dynamics)[..., :2]
+        return {
+            "pos": pos, "states": x, "controls": out.controls.to(z.dtype).reshape(B, M, self.N, self.K, self.nu),
+            "logits": self.scene_logits(z, pos), "params": p, "init_pos": init_pos, "status": out.status,
+        }
+
+
+class SCModel(_Base):
+    """V-LSTM + SC: controls decoded per mode and rolled out, no game."""
+
+    def __init__(self, cfg: ModelConfig, game: PotentialGame):
+        super().__init__(cfg, game)
+        self.ctrl_dec = mlp(cfg.global_width, cfg.dec_width, cfg.modes * self.K * self.nu, norm="layer")
+
+    def forward(self, scene: dict) -> dict:
+        z = self.encoder(scene)
+        B, M = z.shape[0], self.cfg.modes
+        U = self.ctrl_dec(z).reshape(B, self.N, M, self.K, self.nu).permute(0, 2, 1, 3, 4)
+        x0 = scene["history"][:, -1].to(z.dtype)[:, None].expand(B, M, -1, -1)
+        x = rollout_torch(x0, U, self.game.dt, self.dynamics)
+        pos = x[..., :2]
+        return {"pos": pos, "states": x, "controls": U, "logits": self.scene_logits(z, pos)}
+
+
+class VLSTMModel(nn.Module):
+    """V-LSTM marginal: per agent M position trajectories and per-agent mode logits."""
+
+    def __init__(self, cfg: ModelConfig, game: PotentialGame):
+        super().__init__()
+        self.cfg, self.game, self.N, self.K = cfg, game, game.N, game.K
+        self.encoder = Encoder(cfg)
+        W, w, M = cfg.global_width, cfg.dec_width, cfg.modes
+        self.traj_dec = mlp(W, w, M * self.K * 2, norm="layer")
+        self.cls_dec = nn.Sequential(mlp(W, w, M))
+
+    def forward(self, scene: dict) -> dict:
+        z = self.encoder(scene)
+        B, M = z.shape[0], self.cfg.modes
+        cur = scene["history"][:, -1, :, :2].to(z.dtype)  # (B, N, 2)
+        off = self.traj_dec(z).reshape(B, self.N, M, self.K, 2).cumsum(dim=3)
+        pos = (cur[:, :, None, None] + off).permute(0, 2, 1, 3, 4)  # (B, M, N, K, 2)
+        return {"pos": pos, "marginal_logits": self.cls_dec(z)}  # (B, N, M)
+
+
+def build_model(cfg: ModelConfig, game: PotentialGame) -> nn.Module:
+    """The predictor named by ``cfg.kind`` for ``game`` (its agents, horizon and parameters)."""
+    return {"epo": EPOModel, "sc": SCModel, "vlstm": VLSTMModel}[cfg.kind](cfg, game)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return int(sum(np.prod(p.shape) for p in model.parameters() if p.requires_grad))
