@@ -42,10 +42,11 @@ class LazyGroup(click.Group):
         try:
             return getattr(importlib.import_module(mod), attr)
         except (ImportError, AttributeError) as e:  # pragma: no cover - a broken install
+            msg = f"'{name}' is not available in this install: {e}"
 
             @click.command(name=name, help=COMMANDS[name][1])
             def unavailable():
-                raise click.ClickException(f"'{name}' is not available in this install: {e}")
+                raise click.ClickException(msg)
 
             return unavailable
 

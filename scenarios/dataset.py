@@ -1,0 +1,855 @@
+"""Sharded HDF5 datasets: resumable, deterministic generation, verification, loading.
+
+A dataset is a directory::
+
+    DIR/manifest.json         what was asked for and what is finished (written atomically)
+    DIR/train-00000.h5 ...    shards: one split each, a fixed group of work units each
+    DIR/.lock                 held (flock) while a generation runs
+
+Work units and seeds
+    A :class:`Scenario` cuts its dataset into ``n_units`` independent *work units* (for
+    RPI: one main game each). Unit ``i`` is computed from
+    ``SeedSequence(seed, spawn_key=(1, i))`` only (the ``i``-th child of the second child of
+    ``SeedSequence(seed)``), so its samples do not depend on the number of workers, the
+    engine or the order in which units finish. The first child (``spawn_key=(0,)``) draws
+    the split assignment: a permutation of the units, the first ~80 % train, ~10 % val,
+    ~10 % test, so a split is a set of *units* and no unit contributes to two splits.
+
+Shards
+    Per split, the units (sorted by index) are grouped ``units_per_shard`` at a time; a
+    shard holds the samples of its units in unit order, every schema field as one HDF5
+    dataset of shape ``(n, *field_shape)`` (chunked along the first axis, lzf + shuffle
+    filters). Attributes: ``format_version``, ``scenario``, ``split``, ``units``.
+    HDF5 files are written without timestamps, so equal content gives equal bytes and
+    equal sha256 checksums.
+
+Crash safety and resume
+    A shard is written to a hidden temporary name, fsynced and renamed into place
+    (``os.replace``, atomic on POSIX); only then is it added, with its sample count and
+    sha256, to ``manifest.json`` (also written to a temporary file and renamed). A
+    generation killed at any point and started again with the same scenario, recipe and
+    seed keeps every shard listed in the manifest whose checksum still matches, removes
+    temporary files, and recomputes the rest: nothing is lost or duplicated.
+
+Manifest (``format_version`` 1), JSON::
+
+    {"format_version": 1, "scenario": "rpi", "recipe": {...}, "seed": 0,
+     "n_units": 1200, "units_per_shard": 25,
+     "schema": {"history": {"shape": [19, 2, 4], "dtype": "float32", "doc": "..."}, ...},
+     "meta": {...scenario extras, e.g. parameter names...},
+     "splits": {"train": {"units": [...], "shards": ["train-00000.h5", ...]}, ...},
+     "shards": {"train-00000.h5": {"split": "train", "units": [...], "samples": 1234,
+                                   "sha256": "..."}, ...},     # finished shards only
+     "counts": {"train": 47822, "val": ..., "test": ...},      # finished samples
+     "complete": true}
+
+Engines
+    ``local``: a process pool (``concurrent.futures``, spawn context; one worker runs in
+    the calling process). ``dask``: a ``dask.distributed`` client (an existing one, a
+    scheduler address, or a new ``LocalCluster``). Both call the same module-level
+    :func:`run_unit`, so a cluster produces byte-identical shards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from epo_casadi.errors import EpoError, SpecError
+
+__all__ = [
+    "FORMAT_VERSION",
+    "SPLITS",
+    "DatasetError",
+    "FieldSpec",
+    "Scenario",
+    "GenerateReport",
+    "VerifyReport",
+    "SplitReader",
+    "generate",
+    "verify",
+    "load_split",
+    "read_manifest",
+    "unit_seed",
+    "assign_splits",
+    "run_unit",
+    "sha256_file",
+]
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "val", "test")
+MANIFEST = "manifest.json"
+CHUNK_ROWS = 256  # samples per HDF5 chunk
+
+
+class DatasetError(EpoError):
+    """A dataset directory, shard or manifest is missing, inconsistent or corrupt.
+
+    ``where`` names the file or manifest field; the CLI prints ``where: message``.
+    """
+
+    def __init__(self, where: str, message: str):
+        self.where = where
+        self.message = message
+        super().__init__(f"{where}: {message}")
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One per-sample array of a dataset: shape without the sample axis, dtype, doc."""
+
+    shape: tuple[int, ...]
+    dtype: str
+    doc: str = ""
+
+    def to_dict(self) -> dict:
+        return {"shape": list(self.shape), "dtype": self.dtype, "doc": self.doc}
+
+
+class Scenario:
+    """Base of dataset scenarios: work units, schema and the per-unit sample generator.
+
+    Subclasses set :attr:`name` and implement :meth:`schema` and :meth:`run_unit`;
+    :attr:`n_units`, :attr:`units_per_shard` and :attr:`split_fractions` come from the
+    recipe. An instance must be picklable (it is sent to worker processes) and cheap to
+    construct; expensive state (CasADi functions) is built lazily inside the worker.
+    """
+
+    name: str = "scenario"
+
+    def recipe_dict(self) -> dict:
+        raise NotImplementedError
+
+    @property
+    def n_units(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def units_per_shard(self) -> int:
+        return 16
+
+    @property
+    def split_fractions(self) -> tuple[float, float, float]:
+        return (0.8, 0.1, 0.1)
+
+    def schema(self) -> dict[str, FieldSpec]:
+        raise NotImplementedError
+
+    def meta(self) -> dict:
+        """Extra JSON facts for the manifest (parameter names, units, ...)."""
+        return {}
+
+    def expected_samples(self) -> int | None:
+        """Rough total, for the progress bar only."""
+        return None
+
+    def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
+        """Samples of unit ``index``: every schema field as ``(n_i, *shape)``."""
+        raise NotImplementedError
+
+
+# --------------------------------------------------------------------------------------
+# seeds and splits
+# --------------------------------------------------------------------------------------
+def unit_seed(seed: int, index: int) -> np.random.SeedSequence:
+    """Seed of work unit ``index``: ``SeedSequence(seed).spawn(2)[1].spawn(n)[index]``."""
+    return np.random.SeedSequence(int(seed), spawn_key=(1, int(index)))
+
+
+def split_sizes(n: int, fractions: Sequence[float]) -> tuple[int, int, int]:
+    """Units per split: val and test get ``round(f * n)`` but at least 1, train the rest."""
+    if n < 3:
+        raise SpecError("units", f"need at least 3 work units for train/val/test, got {n}")
+    nv = max(1, round(fractions[1] * n))
+    nt = max(1, round(fractions[2] * n))
+    return n - nv - nt, nv, nt
+
+
+def assign_splits(
+    seed: int, n: int, fractions: Sequence[float] = (0.8, 0.1, 0.1)
+) -> dict[str, list[int]]:
+    """Split name -> sorted unit indices; a seeded permutation, disjoint and complete."""
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(0,)))
+    perm = rng.permutation(n)
+    ntr, nv, _ = split_sizes(n, fractions)
+    parts = {"train": perm[:ntr], "val": perm[ntr : ntr + nv], "test": perm[ntr + nv :]}
+    return {k: sorted(int(i) for i in v) for k, v in parts.items()}
+
+
+def plan_shards(splits: dict[str, list[int]], per_shard: int) -> dict[str, dict]:
+    """Shard name -> {"split", "units"}, in split order then unit order."""
+    out = {}
+    for s in SPLITS:
+        units = splits[s]
+        for j in range(math.ceil(len(units) / per_shard)):
+            out[f"{s}-{j:05d}.h5"] = {
+                "split": s,
+                "units": units[j * per_shard : (j + 1) * per_shard],
+            }
+    return out
+
+
+def run_unit(scenario: Scenario, index: int, seed: int) -> tuple[int, dict[str, np.ndarray], float]:
+    """Worker entry point (module level, spawn- and cloudpickle-safe).
+
+    Returns ``(index, arrays, seconds)``; arrays are cast to the schema dtypes and
+    checked against the schema shapes.
+    """
+    t0 = time.perf_counter()
+    out = scenario.run_unit(index, unit_seed(seed, index))
+    arrays = _conform(scenario.schema(), out, f"unit {index}")
+    return index, arrays, time.perf_counter() - t0
+
+
+def _conform(schema: dict[str, FieldSpec], arrays: dict, where: str) -> dict[str, np.ndarray]:
+    missing = set(schema) - set(arrays)
+    extra = set(arrays) - set(schema)
+    if missing or extra:
+        raise DatasetError(
+            where,
+            f"fields differ from the schema: missing {sorted(missing)}, extra {sorted(extra)}",
+        )
+    n = None
+    out = {}
+    for k, fs in schema.items():
+        a = np.asarray(arrays[k])
+        if n is None:
+            n = a.shape[0] if a.ndim else -1
+        if a.shape != (n, *fs.shape):
+            raise DatasetError(
+                f"{where}.{k}",
+                f"expected shape ({n}, {', '.join(map(str, fs.shape))}), got {a.shape}",
+            )
+        out[k] = np.ascontiguousarray(a, dtype=np.dtype(fs.dtype))
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# files
+# --------------------------------------------------------------------------------------
+def sha256_file(path: str | os.PathLike, block: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _fsync_replace(tmp: Path, dst: Path) -> None:
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, dst)
+    with contextlib.suppress(OSError):  # make the rename durable
+        dfd = os.open(dst.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def _write_json(path: Path, obj: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=False)
+        f.write("\n")
+    _fsync_replace(tmp, path)
+
+
+def write_shard(
+    path: Path,
+    scenario_name: str,
+    split: str,
+    units: Sequence[int],
+    schema: dict[str, FieldSpec],
+    parts: Sequence[dict[str, np.ndarray]],
+) -> tuple[int, str]:
+    """Write one shard atomically; returns ``(samples, sha256)``."""
+    import h5py
+
+    data = {
+        k: np.concatenate([p[k] for p in parts], axis=0)
+        if parts
+        else np.zeros((0, *fs.shape), fs.dtype)
+        for k, fs in schema.items()
+    }
+    n = int(next(iter(data.values())).shape[0]) if data else 0
+    tmp = path.with_name(f".{path.name}.tmp")
+    with h5py.File(tmp, "w", libver=("earliest", "v110")) as f:
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["scenario"] = scenario_name
+        f.attrs["split"] = split
+        f.attrs["units"] = np.asarray(units, dtype=np.int64)
+        for k, fs in schema.items():
+            a = data[k]
+            if n:
+                f.create_dataset(
+                    k,
+                    data=a,
+                    chunks=(min(n, CHUNK_ROWS), *fs.shape),
+                    compression="lzf",
+                    shuffle=True,
+                )
+            else:
+                f.create_dataset(k, data=a)
+    _fsync_replace(tmp, path)
+    return n, sha256_file(path)
+
+
+def read_manifest(directory: str | os.PathLike) -> dict:
+    """The manifest of a dataset directory; :class:`DatasetError` if missing or unreadable."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise DatasetError(str(d), "no such dataset directory")
+    p = d / MANIFEST
+    if not p.is_file():
+        raise DatasetError(
+            str(p), "missing: not a dataset directory (or its generation never started)"
+        )
+    try:
+        m = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise DatasetError(str(p), f"unreadable manifest ({e})") from None
+    if not isinstance(m, dict) or m.get("format_version") != FORMAT_VERSION:
+        got = m.get("format_version") if isinstance(m, dict) else None
+        raise DatasetError(f"{p}.format_version", f"expected {FORMAT_VERSION}, got {got!r}")
+    for key in ("scenario", "recipe", "seed", "schema", "splits", "shards", "counts", "complete"):
+        if key not in m:
+            raise DatasetError(f"{p}.{key}", "missing")
+    return m
+
+
+# --------------------------------------------------------------------------------------
+# generation
+# --------------------------------------------------------------------------------------
+@dataclass
+class GenerateReport:
+    """What one :func:`generate` call did."""
+
+    directory: str
+    counts: dict[str, int]
+    shards_written: list[str]
+    shards_kept: list[str]
+    units_run: int
+    samples_written: int
+    seconds: float
+    unit_seconds: list[float] = field(default_factory=list)
+
+    @property
+    def samples_per_second(self) -> float:
+        return self.samples_written / self.seconds if self.seconds > 0 else float("nan")
+
+
+def _new_manifest(scenario: Scenario, seed: int) -> dict:
+    splits = assign_splits(seed, scenario.n_units, scenario.split_fractions)
+    shards = plan_shards(splits, scenario.units_per_shard)
+    return {
+        "format_version": FORMAT_VERSION,
+        "scenario": scenario.name,
+        "recipe": scenario.recipe_dict(),
+        "seed": int(seed),
+        "n_units": int(scenario.n_units),
+        "units_per_shard": int(scenario.units_per_shard),
+        "schema": {k: v.to_dict() for k, v in scenario.schema().items()},
+        "meta": scenario.meta(),
+        "splits": {
+            s: {"units": splits[s], "shards": [n for n, v in shards.items() if v["split"] == s]}
+            for s in SPLITS
+        },
+        "shards": {},
+        "counts": {s: 0 for s in SPLITS},
+        "complete": False,
+    }
+
+
+def _planned(m: dict) -> dict[str, dict]:
+    return plan_shards({s: m["splits"][s]["units"] for s in SPLITS}, m["units_per_shard"])
+
+
+def _same_dataset(old: dict, new: dict) -> str | None:
+    for key in ("scenario", "recipe", "seed", "n_units", "units_per_shard", "schema", "splits"):
+        if json.loads(json.dumps(old.get(key))) != json.loads(json.dumps(new.get(key))):
+            return key
+    return None
+
+
+@contextlib.contextmanager
+def _lock(directory: Path):
+    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DatasetError(
+                str(directory), "another generation is writing to this directory"
+            ) from None
+        yield
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _single_threaded_children():
+    """Children inherit one BLAS / CasADi thread each (set before they import numpy)."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "EPO_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -> Iterator[tuple]:
+    if workers <= 1:
+        for i in units:
+            yield run_unit(scenario, i, seed)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    with _single_threaded_children():
+        ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+    try:
+        # keep a bounded window in flight so finished shards are written early
+        pending, todo = set(), iter(units)
+        for i in todo:
+            pending.add(ex.submit(run_unit, scenario, i, seed))
+            if len(pending) >= 2 * workers:
+                break
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in sorted(done, key=lambda f: f.result()[0]):
+                yield f.result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.add(ex.submit(run_unit, scenario, nxt, seed))
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+
+
+def _iter_dask(
+    scenario: Scenario,
+    units: list[int],
+    seed: int,
+    workers: int,
+    client=None,
+    address: str | None = None,
+) -> Iterator[tuple]:
+    try:
+        import distributed
+    except ImportError:  # pragma: no cover - optional dependency
+        raise SpecError("engine", "the 'dask' engine needs dask[distributed] installed") from None
+    cluster = None
+    own = client is None
+    if own:
+        if address:
+            client = distributed.Client(address)
+        else:
+            with _single_threaded_children():
+                cluster = distributed.LocalCluster(
+                    n_workers=max(1, workers),
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                )
+            client = distributed.Client(cluster)
+    futures = [client.submit(run_unit, scenario, i, seed, pure=False) for i in units]
+    try:
+        for fut in distributed.as_completed(futures):
+            yield fut.result()
+            fut.release()
+    finally:
+        for f in futures:
+            f.cancel()
+        if own:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def generate(
+    scenario: Scenario,
+    out: str | os.PathLike,
+    seed: int = 0,
+    workers: int = 1,
+    engine: str = "local",
+    client=None,
+    address: str | None = None,
+    progress: bool = True,
+    on_shard: Callable[[str], None] | None = None,
+) -> GenerateReport:
+    """Generate (or resume) ``scenario``'s dataset in ``out``; see the module docstring.
+
+    ``engine``: ``"local"`` (process pool of ``workers``) or ``"dask"`` (``client``, a
+    scheduler ``address``, or a new ``LocalCluster`` of ``workers`` processes).
+    ``on_shard(name)`` runs after each shard is committed (tests use it to simulate a
+    kill). Returns a :class:`GenerateReport`.
+    """
+    if engine not in ("local", "dask"):
+        raise SpecError("engine", f"expected 'local' or 'dask', got {engine!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise SpecError("workers", f"expected an integer >= 1, got {workers!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SpecError("seed", f"expected an integer >= 0, got {seed!r}")
+    t0 = time.perf_counter()
+    d = Path(out)
+    if d.exists() and not d.is_dir():
+        raise DatasetError(str(d), "exists and is not a directory")
+    if d.is_dir() and not (d / MANIFEST).exists() and any(x.name != ".lock" for x in d.iterdir()):
+        raise DatasetError(
+            str(d),
+            "exists, is not empty and holds no manifest.json; choose a new or empty directory",
+        )
+    d.mkdir(parents=True, exist_ok=True)
+    schema = scenario.schema()
+    with _lock(d):
+        new = _new_manifest(scenario, int(seed))
+        mpath = d / MANIFEST
+        if mpath.exists():
+            m = read_manifest(d)
+            key = _same_dataset(m, new)
+            if key is not None:
+                raise DatasetError(
+                    str(mpath),
+                    f"holds a dataset with a different {key}; use another --out directory",
+                )
+        else:
+            m = new
+        for tmp in d.glob(".*.tmp"):
+            tmp.unlink()
+        planned = _planned(m)
+        kept = []
+        for name in list(m["shards"]):
+            f = d / name
+            if (
+                name not in planned
+                or not f.is_file()
+                or sha256_file(f) != m["shards"][name]["sha256"]
+            ):
+                del m["shards"][name]
+            else:
+                kept.append(name)
+        _recount(m, planned)
+        _write_json(mpath, m)
+
+        todo_shards = [n for n in planned if n not in m["shards"]]
+        unit_to_shard = {u: n for n in todo_shards for u in planned[n]["units"]}
+        units = [u for n in todo_shards for u in planned[n]["units"]]
+        results: dict[int, dict] = {}
+        written: list[str] = []
+        secs: list[float] = []
+        n_samples = 0
+        bar = it = None
+        order = {n: j for j, n in enumerate(planned)}
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=len(units), unit="game", desc=f"{scenario.name} -> {d}", dynamic_ncols=True
+            )
+        try:
+            if engine == "local":
+                it = _iter_local(scenario, units, int(seed), workers)
+            else:
+                it = _iter_dask(scenario, units, int(seed), workers, client, address)
+            t_start = time.perf_counter()
+            for index, arrays, dt in it:
+                results[index] = arrays
+                secs.append(dt)
+                n_samples += len(next(iter(arrays.values()))) if arrays else 0
+                if bar is not None:
+                    el = time.perf_counter() - t_start
+                    bar.update(1)
+                    bar.set_postfix(
+                        samples=n_samples, rate=f"{n_samples / max(el, 1e-9):.1f} samples/s"
+                    )
+                name = unit_to_shard[index]
+                sunits = planned[name]["units"]
+                if all(u in results for u in sunits):
+                    n, digest = write_shard(
+                        d / name,
+                        scenario.name,
+                        planned[name]["split"],
+                        sunits,
+                        schema,
+                        [results.pop(u) for u in sunits],
+                    )
+                    m["shards"][name] = {
+                        "split": planned[name]["split"],
+                        "units": sunits,
+                        "samples": n,
+                        "sha256": digest,
+                    }
+                    m["shards"] = dict(sorted(m["shards"].items(), key=lambda kv: order[kv[0]]))
+                    _recount(m, planned)
+                    _write_json(mpath, m)
+                    written.append(name)
+                    if on_shard is not None:
+                        on_shard(name)
+        finally:
+            if it is not None:
+                it.close()  # shuts the pool or the cluster down, also after an error
+            if bar is not None:
+                bar.close()
+        return GenerateReport(
+            str(d),
+            dict(m["counts"]),
+            written,
+            kept,
+            len(secs),
+            sum(m["shards"][n]["samples"] for n in written),
+            time.perf_counter() - t0,
+            secs,
+        )
+
+
+def _recount(m: dict, planned: dict) -> None:
+    m["counts"] = {
+        s: sum(v["samples"] for v in m["shards"].values() if v["split"] == s) for s in SPLITS
+    }
+    m["complete"] = all(n in m["shards"] for n in planned)
+
+
+# --------------------------------------------------------------------------------------
+# verification
+# --------------------------------------------------------------------------------------
+@dataclass
+class VerifyReport:
+    """Outcome of :func:`verify`: ``ok`` and one line per problem found."""
+
+    directory: str
+    counts: dict[str, int]
+    shards: int
+    problems: list[str]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def summary(self) -> str:
+        c = ", ".join(f"{s} {self.counts.get(s, 0)}" for s in SPLITS)
+        if self.ok:
+            return f"ok: {self.directory}: {self.shards} shards, {sum(self.counts.values())} samples ({c})"
+        return f"{len(self.problems)} problem(s) in {self.directory}: " + "; ".join(self.problems)
+
+
+def verify(directory: str | os.PathLike, checksums: bool = True) -> VerifyReport:
+    """Check a dataset: manifest, completeness, checksums, shapes, counts, disjoint splits.
+
+    Raises :class:`DatasetError` only when the manifest itself is missing or unreadable;
+    every other problem becomes one line of :attr:`VerifyReport.problems`.
+    """
+    import h5py
+
+    d = Path(directory)
+    m = read_manifest(d)
+    problems: list[str] = []
+    planned = _planned(m)
+    seen: dict[int, str] = {}
+    for s in SPLITS:
+        for u in m["splits"][s]["units"]:
+            if u in seen:
+                problems.append(f"splits.{s}: unit {u} is also in split {seen[u]}")
+            seen[u] = s
+    if sorted(seen) != list(range(m["n_units"])):
+        problems.append(f"splits: units do not cover 0..{m['n_units'] - 1} exactly once")
+    if not m["complete"]:
+        missing = [n for n in planned if n not in m["shards"]]
+        problems.append(
+            f"manifest.complete: generation unfinished, {len(missing)} shard(s) missing (run generate again to resume)"
+        )
+    schema = {k: FieldSpec(tuple(v["shape"]), v["dtype"]) for k, v in m["schema"].items()}
+    counts = {s: 0 for s in SPLITS}
+    for name, info in m["shards"].items():
+        f = d / name
+        if name not in planned:
+            problems.append(f"shards[{name!r}]: not a planned shard")
+            continue
+        # a bad file is reported once; its manifest count stands in for the totals below
+        counts[info["split"]] += info["samples"]
+        if not f.is_file():
+            problems.append(f"{name}: file missing")
+            continue
+        if checksums and sha256_file(f) != info["sha256"]:
+            problems.append(f"{name}: sha256 checksum mismatch (file changed or corrupt)")
+            continue
+        try:
+            with h5py.File(f, "r") as h:
+                units = h.attrs["units"].tolist()
+                if units != planned[name]["units"] or h.attrs["split"] != planned[name]["split"]:
+                    problems.append(f"{name}: units/split attributes differ from the manifest")
+                for k, fs in schema.items():
+                    if k not in h:
+                        problems.append(f"{name}.{k}: field missing")
+                        continue
+                    ds = h[k]
+                    if ds.shape != (info["samples"], *fs.shape) or ds.dtype != np.dtype(fs.dtype):
+                        problems.append(
+                            f"{name}.{k}: shape {ds.shape} {ds.dtype}, manifest says "
+                            f"({info['samples']}, {', '.join(map(str, fs.shape))}) {fs.dtype}"
+                        )
+                if "main_game" in h and info["samples"]:
+                    ids = set(np.unique(h["main_game"][()]).tolist())
+                    if not ids <= set(units):
+                        problems.append(f"{name}.main_game: samples from units outside this shard")
+        except OSError as e:
+            problems.append(f"{name}: unreadable HDF5 file ({e})")
+    for s in SPLITS:
+        if counts[s] != m["counts"].get(s):
+            problems.append(
+                f"counts.{s}: manifest says {m['counts'].get(s)}, its shards hold {counts[s]}"
+            )
+    return VerifyReport(str(d), counts, len(m["shards"]), problems)
+
+
+# --------------------------------------------------------------------------------------
+# loading
+# --------------------------------------------------------------------------------------
+def _check_split(m: dict, split: str) -> None:
+    if split not in SPLITS:
+        raise SpecError("split", f"expected one of {list(SPLITS)}, got {split!r}")
+    if not m["complete"]:
+        missing = [n for n in m["splits"][split]["shards"] if n not in m["shards"]]
+        if missing:
+            raise DatasetError(
+                f"{MANIFEST}.complete",
+                f"split {split!r} is unfinished ({len(missing)} shard(s) missing); run generate again to resume",
+            )
+
+
+class SplitReader:
+    """Random access to one split without loading it: ``len``, ``reader[i]``, ``reader.read(idx)``.
+
+    Shard files are opened on first use and kept open; use as a context manager or call
+    :meth:`close`. ``reader[i]`` is a dict of per-sample arrays (no sample axis);
+    :meth:`read` takes an index array (any order, repeats allowed) and returns a batch.
+    """
+
+    def __init__(
+        self, directory: str | os.PathLike, split: str, fields: Iterable[str] | None = None
+    ):
+        self.directory = Path(directory)
+        self.manifest = m = read_manifest(self.directory)
+        _check_split(m, split)
+        self.split = split
+        self.schema = {
+            k: FieldSpec(tuple(v["shape"]), v["dtype"], v.get("doc", ""))
+            for k, v in m["schema"].items()
+        }
+        names = list(self.schema) if fields is None else list(fields)
+        for k in names:
+            if k not in self.schema:
+                raise SpecError(
+                    "fields", f"unknown field {k!r}; expected some of {list(self.schema)}"
+                )
+        self.fields = names
+        self.shards = [n for n in m["splits"][split]["shards"]]
+        sizes = [m["shards"][n]["samples"] for n in self.shards]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self._files: dict[str, Any] = {}
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def _file(self, name: str):
+        if name not in self._files:
+            import h5py
+
+            path = self.directory / name
+            try:
+                self._files[name] = h5py.File(path, "r")
+            except (OSError, FileNotFoundError) as e:
+                raise DatasetError(str(path), f"cannot open shard ({e})") from None
+        return self._files[name]
+
+    def _locate(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(self)
+        if idx.size and (idx.min() < -n or idx.max() >= n):
+            bad = idx[(idx < -n) | (idx >= n)][0]
+            raise SpecError(
+                "index", f"expected an index in [0, {n}) for split {self.split!r}, got {int(bad)}"
+            )
+        idx = np.where(idx < 0, idx + n, idx)
+        shard = np.searchsorted(self.offsets, idx, side="right") - 1
+        return shard, idx - self.offsets[shard]
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
+            raise SpecError("index", f"expected an integer, got {i!r}")
+        b = self.read(np.array([int(i)]))
+        return {k: v[0] for k, v in b.items()}
+
+    def read(self, indices) -> dict[str, np.ndarray]:
+        """Batch of samples ``indices`` (int array or slice) as dict of ``(B, *shape)`` arrays."""
+        if isinstance(indices, slice):
+            indices = np.arange(len(self))[indices]
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        shard, local = self._locate(idx)
+        out = {
+            k: np.empty((idx.size, *self.schema[k].shape), np.dtype(self.schema[k].dtype))
+            for k in self.fields
+        }
+        for s in np.unique(shard):
+            sel = np.nonzero(shard == s)[0]
+            loc = local[sel]
+            order = np.argsort(loc, kind="stable")
+            uniq, inv = np.unique(loc[order], return_inverse=True)
+            h = self._file(self.shards[s])
+            for k in self.fields:
+                vals = h[k][uniq]  # h5py fancy indexing needs increasing unique indices
+                out[k][sel[order]] = vals[inv]
+        return out
+
+    def read_all(self) -> dict[str, np.ndarray]:
+        out = {}
+        for k in self.fields:
+            fs = self.schema[k]
+            a = np.empty((len(self), *fs.shape), np.dtype(fs.dtype))
+            for j, name in enumerate(self.shards):
+                lo, hi = self.offsets[j], self.offsets[j + 1]
+                if hi > lo:
+                    self._file(name)[k].read_direct(a, dest_sel=np.s_[lo:hi])
+            out[k] = a
+        return out
+
+    def close(self) -> None:
+        for f in self._files.values():
+            f.close()
+        self._files.clear()
+
+    def __enter__(self) -> SplitReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):  # pragma: no cover - best effort
+        with contextlib.suppress(Exception):
+            self.close()
+
+
+def load_split(
+    directory: str | os.PathLike, split: str, fields: Iterable[str] | None = None
+) -> dict[str, np.ndarray]:
+    """Every sample of ``split`` as a dict of numpy arrays ``(n, *shape)`` (shards in order)."""
+    with SplitReader(directory, split, fields) as r:
+        return r.read_all()
