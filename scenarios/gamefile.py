@@ -2,7 +2,7 @@
 
 A game file holds one :class:`epo_casadi.GameSpec` (agents, features, horizon, step)
 plus optional solver options. The schema, with every field, is documented in
-``docs/sections/gamefiles.md``; in short::
+``docs/gamefiles.md``; in short::
 
     horizon: 40                 # K, number of steps (integer >= 1)
     dt: 0.1                     # step length in seconds (> 0)

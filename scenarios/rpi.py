@@ -45,7 +45,7 @@ One mode only
 
 Sample count
     Each main game yields (main modes found) x (steps until passing) samples, 24 to 50,
-    about 30 on average (measured in ``docs/sections/rpi.md``). The paper reports 60,338 samples
+    about 30 on average (measured in ``docs/rpi.md``). The paper reports 60,338 samples
     from 20 main games (~3,000 per main game), which one executed path per mode cannot
     produce; the text does not say what else varied inside a main game. This recipe keeps
     the order of the sample count instead: :meth:`RPIRecipe.full` has 2,000 main games
@@ -99,7 +99,7 @@ from .dataset import FieldSpec, Scenario
 
 __all__ = ["RPIRecipe", "RPIScenario", "MainGameConfig", "Mode", "SAMPLES_PER_GAME"]
 
-#: measured mean samples per main game of the default recipe (docs/sections/rpi.md)
+#: measured mean samples per main game of the default recipe (docs/rpi.md)
 SAMPLES_PER_GAME = 30.0
 AGENTS = ("robot", "pedestrian")
 

@@ -28,7 +28,7 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
        * ``"auto"`` (default): Gauss-Newton for the game's costs, exact for custom ones.
          On the crossing games of the tests, exact Hessians with the shift below do not
          converge (the collision distance has negative curvature, the value Hessians turn
-         indefinite and grow), Gauss-Newton converges in 7-13 iterations (docs/sections/ilq.md).
+         indefinite and grow), Gauss-Newton converges in 7-13 iterations (docs/ilq.md).
 
        **Cross-stage Hessian blocks are dropped** (residual rows that couple two stages,
        e.g. ``jerk`` or ``turn_acceleration``): the gradient stays exact, the curvature

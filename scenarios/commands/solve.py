@@ -1,7 +1,7 @@
 """``epo solve GAME.yaml``: solve a game file with LM or IPOPT, certify, write JSON.
 
 The result file (``--out``) is one JSON object, documented in
-``docs/sections/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
+``docs/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
 (``(K, nu_i)``), ``energy``, ``agent_costs``, the local Nash ``certificate``, ``status``,
 ``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
 ``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
