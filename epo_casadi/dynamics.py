@@ -138,7 +138,9 @@ class KinematicBicycle(Dynamics):
 
     def __post_init__(self):
         if not self.wheelbase > 0:
-            raise SpecError("wheelbase", f"must be a positive length in metres, got {self.wheelbase}")
+            raise SpecError(
+                "wheelbase", f"must be a positive length in metres, got {self.wheelbase}"
+            )
 
     def step(self, x, u, dt):
         v, th = x[2], x[3]

@@ -188,7 +188,9 @@ class Jerk(Feature):
 
     def residual(self, ctx):
         acc = ctx.dynamics.acceleration
-        return _cols(lambda k: (acc(ctx.U[:, k + 1]) - acc(ctx.U[:, k])) / ctx.dt, self.steps(ctx.K))
+        return _cols(
+            lambda k: (acc(ctx.U[:, k + 1]) - acc(ctx.U[:, k])) / ctx.dt, self.steps(ctx.K)
+        )
 
 
 @dataclass(frozen=True)
@@ -230,7 +232,9 @@ class ReferenceVelocity(Feature):
         return list(range(1, K + 1))
 
     def residual(self, ctx):
-        return _cols(lambda k: ctx.dynamics.speed(ctx.X[:, k]) - ctx.refs["vref"], self.steps(ctx.K))
+        return _cols(
+            lambda k: ctx.dynamics.speed(ctx.X[:, k]) - ctx.refs["vref"], self.steps(ctx.K)
+        )
 
 
 @dataclass(frozen=True)
@@ -248,7 +252,9 @@ class Path(Feature):
 
     def __post_init__(self):
         if self.points is not None and not (isinstance(self.points, int) and self.points >= 2):
-            raise SpecError("path.points", f"a polyline needs an integer >= 2 points, got {self.points!r}")
+            raise SpecError(
+                "path.points", f"a polyline needs an integer >= 2 points, got {self.points!r}"
+            )
 
     def refs(self):
         return {"path": 2 * self.points}
@@ -376,7 +382,9 @@ class Collision(PairFeature):
     def residual(self, a, b):
         pa, pb = a.dynamics.position, b.dynamics.position
         return _cols(
-            lambda k: ca.fmax(0, a.radius + b.radius - smooth_distance(pa(a.X[:, k]), pb(b.X[:, k]))),
+            lambda k: ca.fmax(
+                0, a.radius + b.radius - smooth_distance(pa(a.X[:, k]), pb(b.X[:, k]))
+            ),
             self.steps(a.K),
         )
 
@@ -409,13 +417,18 @@ def _construct(registry: dict, spec: Any, where: str):
         raise SpecError(where, f"expected a feature name or a mapping with 'type', got {spec!r}")
     kind = spec["type"]
     if kind not in registry:
-        raise SpecError(f"{where}.type", f"unknown feature {kind!r}; expected one of {sorted(registry)}")
+        raise SpecError(
+            f"{where}.type", f"unknown feature {kind!r}; expected one of {sorted(registry)}"
+        )
     cls = registry[kind]
     names = {f.name for f in fields(cls)}
     opts = {k: v for k, v in spec.items() if k != "type"}
     unknown = set(opts) - names
     if unknown:
-        raise SpecError(where, f"unknown option(s) {sorted(unknown)} for feature '{kind}'; allowed: {sorted(names)}")
+        raise SpecError(
+            where,
+            f"unknown option(s) {sorted(unknown)} for feature '{kind}'; allowed: {sorted(names)}",
+        )
     if "pairs" in opts and opts["pairs"] is not None:
         opts["pairs"] = tuple(tuple(p) for p in opts["pairs"])
     try:
@@ -431,4 +444,3 @@ def make_feature(spec: Any, where: str = "feature") -> Feature:
 
 def make_pair_feature(spec: Any, where: str = "pair_feature") -> PairFeature:
     return _construct(PAIR_FEATURES, spec, where)
-

@@ -59,7 +59,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from functools import cached_property
 from typing import Any
 
 import casadi as ca
@@ -114,7 +113,9 @@ class AgentSpec:
     def __post_init__(self):
         where = f"agents[{self.name!r}]"
         if not isinstance(self.name, str) or not self.name or "." in self.name or "-" in self.name:
-            raise SpecError("agents.name", f"expected a non-empty name without '.' or '-', got {self.name!r}")
+            raise SpecError(
+                "agents.name", f"expected a non-empty name without '.' or '-', got {self.name!r}"
+            )
         dyn = make_dynamics(self.dynamics)
         object.__setattr__(self, "dynamics", dyn)
         r = self.radius
@@ -138,12 +139,19 @@ class AgentSpec:
                 npts = len(self.path) if self.path is not None else None
                 if f.points is None:
                     if npts is None:
-                        raise SpecError(f"{where}.path", "the 'path' feature needs the agent's path (or 'points')")
+                        raise SpecError(
+                            f"{where}.path",
+                            "the 'path' feature needs the agent's path (or 'points')",
+                        )
                     f = replace(f, points=npts)
                 elif npts is not None and npts != f.points:
-                    raise SpecError(f"{where}.path", f"feature expects {f.points} points, path has {npts}")
+                    raise SpecError(
+                        f"{where}.path", f"feature expects {f.points} points, path has {npts}"
+                    )
             if f.key in keys:
-                raise SpecError(f"{where}.features[{n}]", f"duplicate feature {f.key!r}; give one a 'label'")
+                raise SpecError(
+                    f"{where}.features[{n}]", f"duplicate feature {f.key!r}; give one a 'label'"
+                )
             keys.add(f.key)
             try:
                 f.check(dyn)
@@ -197,20 +205,32 @@ class GameSpec:
         if isinstance(K, bool) or not isinstance(K, int) or K < 1:
             raise SpecError("horizon", f"expected an integer number of steps >= 1, got {K!r}")
         dt = self.dt
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        if (
+            isinstance(dt, bool)
+            or not isinstance(dt, (int, float))
+            or not math.isfinite(dt)
+            or dt <= 0
+        ):
             raise SpecError("dt", f"expected a step length > 0 in seconds, got {dt!r}")
         pfs, keys = [], set()
         for n, pf in enumerate(self.pair_features):
             pf = make_pair_feature(pf, f"pair_features[{n}]")
             if pf.key in keys:
-                raise SpecError(f"pair_features[{n}]", f"duplicate pair feature {pf.key!r}; give one a 'label'")
+                raise SpecError(
+                    f"pair_features[{n}]", f"duplicate pair feature {pf.key!r}; give one a 'label'"
+                )
             keys.add(pf.key)
             w = pf.weight
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
-                raise SpecError(f"pair_features[{n}].weight", f"expected a finite number, got {w!r}")
+                raise SpecError(
+                    f"pair_features[{n}].weight", f"expected a finite number, got {w!r}"
+                )
             for pr in pf.pairs or ():
                 if len(pr) != 2 or pr[0] == pr[1] or any(a not in names for a in pr):
-                    raise SpecError(f"pair_features[{n}].pairs", f"expected two different agent names from {names}, got {list(pr)}")
+                    raise SpecError(
+                        f"pair_features[{n}].pairs",
+                        f"expected two different agent names from {names}, got {list(pr)}",
+                    )
             pfs.append(pf)
         object.__setattr__(self, "agents", agents)
         object.__setattr__(self, "pair_features", tuple(pfs))
@@ -276,7 +296,9 @@ class ParamLayout:
         try:
             return self._by_name[name]
         except KeyError:
-            raise SpecError("params", f"unknown parameter block {name!r}; known: {list(self._by_name)}") from None
+            raise SpecError(
+                "params", f"unknown parameter block {name!r}; known: {list(self._by_name)}"
+            ) from None
 
     def group(self, group: str) -> np.ndarray:
         """Indices into ``p`` of all entries of ``group`` (see :attr:`GROUPS`)."""
@@ -288,7 +310,9 @@ class ParamLayout:
     def defaults(self) -> np.ndarray:
         return np.array([v for b in self.blocks for v in b.default], dtype=float)
 
-    def pack(self, values: Mapping[str, Any] | None = None, base: np.ndarray | None = None) -> np.ndarray:
+    def pack(
+        self, values: Mapping[str, Any] | None = None, base: np.ndarray | None = None
+    ) -> np.ndarray:
         """A parameter vector: ``base`` (default: :meth:`defaults`) with named blocks replaced.
 
         ``values`` maps block names to numbers or arrays of the block's size; an unknown
@@ -372,7 +396,9 @@ class PotentialGame:
         self.nx = [a.dynamics.nx for a in spec.agents]
         self.nu = [a.dynamics.nu for a in spec.agents]
         self.uoff = np.concatenate([[0], np.cumsum([self.K * n for n in self.nu])]).astype(int)
-        self.xoff = np.concatenate([[0], np.cumsum([(self.K + 1) * n for n in self.nx])]).astype(int)
+        self.xoff = np.concatenate([[0], np.cumsum([(self.K + 1) * n for n in self.nx])]).astype(
+            int
+        )
         self.n_u = int(self.uoff[-1])
         self.n_x = int(self.xoff[-1])
         self.params = self._layout()
@@ -405,8 +431,15 @@ class PotentialGame:
         for a, r in zip(self.agents, refs, strict=True):
             if "path" in r:
                 n = r["path"] // 2
-                pts = np.asarray(a.path, float).reshape(-1) if a.path is not None else np.zeros(2 * n)
-                add(f"path.{a.name}", "path", pts, [f"path.{a.name}.{c}{j}" for j in range(n) for c in "xy"])
+                pts = (
+                    np.asarray(a.path, float).reshape(-1) if a.path is not None else np.zeros(2 * n)
+                )
+                add(
+                    f"path.{a.name}",
+                    "path",
+                    pts,
+                    [f"path.{a.name}.{c}{j}" for j in range(n) for c in "xy"],
+                )
         for a in self.agents:
             for f in a.features:
                 add(f"w.{a.name}.{f.key}", "w_own", [f.weight], [f"w.{a.name}.{f.key}"])
@@ -453,8 +486,16 @@ class PotentialGame:
                 w = p[self.params[f"w.{a.name}.{f.key}"].start]
                 r = w * f.residual(ctxs[i])
                 terms.append(
-                    Term(len(terms), "own", (a.name,), f.key, f.kind, f"w.{a.name}.{f.key}",
-                         tuple(f.steps(self.K)), slice(row, row + r.shape[0]))
+                    Term(
+                        len(terms),
+                        "own",
+                        (a.name,),
+                        f.key,
+                        f.kind,
+                        f"w.{a.name}.{f.key}",
+                        tuple(f.steps(self.K)),
+                        slice(row, row + r.shape[0]),
+                    )
                 )
                 blocks.append(r)
                 row += r.shape[0]
@@ -463,8 +504,16 @@ class PotentialGame:
                 nm = f"w.{self.agent_names[i]}-{self.agent_names[j]}.{pf.key}"
                 r = p[self.params[nm].start] * pf.residual(ctxs[i], ctxs[j])
                 terms.append(
-                    Term(len(terms), "pair", (self.agent_names[i], self.agent_names[j]), pf.key,
-                         pf.kind, nm, tuple(pf.steps(self.K)), slice(row, row + r.shape[0]))
+                    Term(
+                        len(terms),
+                        "pair",
+                        (self.agent_names[i], self.agent_names[j]),
+                        pf.key,
+                        pf.kind,
+                        nm,
+                        tuple(pf.steps(self.K)),
+                        slice(row, row + r.shape[0]),
+                    )
                 )
                 blocks.append(r)
                 row += r.shape[0]
@@ -479,9 +528,15 @@ class PotentialGame:
             C.append(ca.sum1(e_terms[idx]) if idx else ca.SX(0))
         C = ca.vertcat(*C)
         self._traj = {
-            "traj_residual": ca.Function("traj_residual", [x, u, p], [r_traj], ["x", "u", "p"], ["r"]),
-            "traj_term_energies": ca.Function("traj_term_energies", [x, u, p], [e_terms], ["x", "u", "p"], ["e"]),
-            "traj_agent_costs": ca.Function("traj_agent_costs", [x, u, p], [C], ["x", "u", "p"], ["C"]),
+            "traj_residual": ca.Function(
+                "traj_residual", [x, u, p], [r_traj], ["x", "u", "p"], ["r"]
+            ),
+            "traj_term_energies": ca.Function(
+                "traj_term_energies", [x, u, p], [e_terms], ["x", "u", "p"], ["e"]
+            ),
+            "traj_agent_costs": ca.Function(
+                "traj_agent_costs", [x, u, p], [C], ["x", "u", "p"], ["C"]
+            ),
         }
         self._u, self._p = u, p
         self._x_roll = self._rollout_expr(u, p)
@@ -500,7 +555,9 @@ class PotentialGame:
         elif name in self.FUNCTIONS:
             f = getattr(self, f"_make_{name}")()
         else:
-            raise SpecError("function", f"unknown function {name!r}; expected one of {list(self.FUNCTIONS)}")
+            raise SpecError(
+                "function", f"unknown function {name!r}; expected one of {list(self.FUNCTIONS)}"
+            )
         self._cache[name] = f
         return f
 
@@ -547,13 +604,22 @@ class PotentialGame:
         return self._fn("term_energies", [self._e_terms], ["e"])
 
     def _make_lm_terms(self):
-        return self._fn("lm_terms", [self._r, ca.densify(ca.jacobian(self._r, self._u))], ["r", "J"])
+        return self._fn(
+            "lm_terms", [self._r, ca.densify(ca.jacobian(self._r, self._u))], ["r", "J"]
+        )
 
     # ---- symbolic access for other builders -----------------------------------------------
     @property
     def symbols(self) -> dict[str, Any]:
         """The SX symbols and expressions: ``u``, ``p``, ``x`` (rollout), ``r``, ``E``, ``C``."""
-        return {"u": self._u, "p": self._p, "x": self._x_roll, "r": self._r, "E": self._E, "C": self._C}
+        return {
+            "u": self._u,
+            "p": self._p,
+            "x": self._x_roll,
+            "r": self._r,
+            "E": self._E,
+            "C": self._C,
+        }
 
     # ---- numeric helpers ------------------------------------------------------------------
     def default_params(self, **values) -> np.ndarray:
@@ -580,7 +646,9 @@ class PotentialGame:
         for i, a in enumerate(parts):
             a = np.asarray(a, dtype=float)
             if a.shape[-2:] != (self.K, self.nu[i]):
-                raise SpecError(f"controls[{i}]", f"expected shape (..., {self.K}, {self.nu[i]}), got {a.shape}")
+                raise SpecError(
+                    f"controls[{i}]", f"expected shape (..., {self.K}, {self.nu[i]}), got {a.shape}"
+                )
             flat.append(a.reshape(*a.shape[:-2], -1))
         return np.concatenate(flat, axis=-1)
 
@@ -609,7 +677,9 @@ class PotentialGame:
             raise SpecError("p", f"expected last dimension n_p = {self.n_p}, got shape {p.shape}")
         u2, p2 = np.atleast_2d(u), np.atleast_2d(p)
         if u2.ndim != 2 or p2.ndim != 2:
-            raise SpecError("u/p", f"expected 1-D or 2-D (batch, n) arrays, got {u.shape} and {p.shape}")
+            raise SpecError(
+                "u/p", f"expected 1-D or 2-D (batch, n) arrays, got {u.shape} and {p.shape}"
+            )
         B = max(u2.shape[0], p2.shape[0])
         if u2.shape[0] not in (1, B) or p2.shape[0] not in (1, B):
             raise SpecError("u/p", f"batch sizes differ: {u2.shape[0]} and {p2.shape[0]}")
@@ -627,4 +697,3 @@ class PotentialGame:
             f"PotentialGame(N={self.N}, K={self.K}, dt={self.dt}, n_u={self.n_u}, "
             f"n_p={self.n_p}, n_r={self.n_r}, terms={len(self.terms)})"
         )
-

@@ -29,7 +29,9 @@ class LossWeights:
     probability: float = 0.1  #: lambda_3
 
 
-def scene_loss(pos, logits, gt, weights: LossWeights = LossWeights(), mask=None) -> dict[str, torch.Tensor]:
+def scene_loss(
+    pos, logits, gt, weights: LossWeights = LossWeights(), mask=None
+) -> dict[str, torch.Tensor]:
     """Joint (scene-level) loss; returns the total and its parts (means over the batch)."""
     sq = ((pos - gt[:, None]) ** 2).sum(-1).mean(-1)  # (B, M, N)
     if mask is not None:
@@ -44,7 +46,9 @@ def scene_loss(pos, logits, gt, weights: LossWeights = LossWeights(), mask=None)
     return {"loss": total, "imitation": imit, "probability": prob}
 
 
-def marginal_loss(pos, logits, gt, weights: LossWeights = LossWeights(probability=1.0), mask=None) -> dict[str, torch.Tensor]:
+def marginal_loss(
+    pos, logits, gt, weights: LossWeights = LossWeights(probability=1.0), mask=None
+) -> dict[str, torch.Tensor]:
     """Marginal loss: per agent the closest mode's ADE, plus classification of that mode.
 
     ``logits`` are per agent, ``(B, N, M)``.
@@ -52,7 +56,9 @@ def marginal_loss(pos, logits, gt, weights: LossWeights = LossWeights(probabilit
     ade = torch.linalg.vector_norm(pos - gt[:, None], dim=-1).mean(-1)  # (B, M, N)
     best = ade.argmin(dim=1)  # (B, N)
     imit_agent = ade.gather(1, best[:, None]).squeeze(1)  # (B, N)
-    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), best.reshape(-1), reduction="none").reshape(best.shape)
+    ce = F.cross_entropy(
+        logits.reshape(-1, logits.shape[-1]), best.reshape(-1), reduction="none"
+    ).reshape(best.shape)
     if mask is not None:
         m = mask.to(ade.dtype)
         imit = (imit_agent * m).sum() / m.sum().clamp_min(1)

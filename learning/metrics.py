@@ -29,7 +29,15 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["min_ade", "min_fde", "min_sade", "min_sfde", "overlap_rate", "marginal_to_joint", "all_metrics"]
+__all__ = [
+    "min_ade",
+    "min_fde",
+    "min_sade",
+    "min_sfde",
+    "overlap_rate",
+    "marginal_to_joint",
+    "all_metrics",
+]
 
 
 def _t(a) -> torch.Tensor:
@@ -41,12 +49,16 @@ def _check(pred, gt, mask):
     if pred.ndim != 5 or pred.shape[-1] != 2:
         raise ValueError(f"pred: expected shape (B, M, N, T, 2), got {tuple(pred.shape)}")
     if gt.shape != pred.shape[:1] + pred.shape[2:]:
-        raise ValueError(f"gt: expected shape {tuple(pred.shape[:1] + pred.shape[2:])}, got {tuple(gt.shape)}")
+        raise ValueError(
+            f"gt: expected shape {tuple(pred.shape[:1] + pred.shape[2:])}, got {tuple(gt.shape)}"
+        )
     if mask is None:
         mask = torch.ones(pred.shape[0], pred.shape[2], dtype=torch.bool, device=pred.device)
     mask = _t(mask).to(torch.bool)
     if mask.shape != (pred.shape[0], pred.shape[2]):
-        raise ValueError(f"mask: expected shape {(pred.shape[0], pred.shape[2])}, got {tuple(mask.shape)}")
+        raise ValueError(
+            f"mask: expected shape {(pred.shape[0], pred.shape[2])}, got {tuple(mask.shape)}"
+        )
     return pred, gt, mask
 
 
@@ -89,7 +101,9 @@ def overlap_rate(pred, probs, radii, mask=None) -> torch.Tensor:
     pred, probs = _t(pred), _t(probs)
     B, M, N = pred.shape[:3]
     if probs.shape != (B, M):
-        raise ValueError(f"probs: expected joint probabilities of shape {(B, M)}, got {tuple(probs.shape)}")
+        raise ValueError(
+            f"probs: expected joint probabilities of shape {(B, M)}, got {tuple(probs.shape)}"
+        )
     radii = _t(radii).to(pred.dtype)
     radii = radii.expand(B, N) if radii.ndim == 1 else radii
     if mask is None:
@@ -112,7 +126,9 @@ def marginal_to_joint(pred, probs):
     pred, probs = _t(pred), _t(probs)
     B, M, N = pred.shape[:3]
     if probs.shape != (B, N, M):
-        raise ValueError(f"probs: expected marginal probabilities of shape {(B, N, M)}, got {tuple(probs.shape)}")
+        raise ValueError(
+            f"probs: expected marginal probabilities of shape {(B, N, M)}, got {tuple(probs.shape)}"
+        )
     order = probs.argsort(dim=-1, descending=True)  # (B, N, M)
     idx = order.permute(0, 2, 1)  # (B, M, N): mode of agent n in joint mode m
     joint = torch.gather(pred, 1, idx[..., None, None].expand(B, M, N, *pred.shape[3:]))

@@ -39,10 +39,19 @@ import numpy as np
 import torch
 from torch import nn
 
+from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
-__all__ = ["ModelConfig", "build_model", "EPOModel", "SCModel", "VLSTMModel", "Encoder", "rollout_torch"]
+__all__ = [
+    "ModelConfig",
+    "build_model",
+    "EPOModel",
+    "SCModel",
+    "VLSTMModel",
+    "Encoder",
+    "rollout_torch",
+]
 
 
 @dataclass(frozen=True)
@@ -67,11 +76,24 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm"):
-            raise ValueError(f"model.kind: expected 'epo', 'sc' or 'vlstm', got {self.kind!r}")
+            raise SpecError("model.kind", f"expected 'epo', 'sc' or 'vlstm', got {self.kind!r}")
         if self.backbone not in ("vlstm", "vibes"):
-            raise ValueError(f"model.backbone: expected 'vlstm' or 'vibes', got {self.backbone!r}")
-        if not (isinstance(self.modes, int) and self.modes >= 1):
-            raise ValueError(f"model.modes: expected an integer >= 1, got {self.modes!r}")
+            raise SpecError("model.backbone", f"expected 'vlstm' or 'vibes', got {self.backbone!r}")
+        if self.backward not in ("unrolled", "implicit"):
+            raise SpecError("model.backward", f"expected 'unrolled' or 'implicit', got {self.backward!r}")
+        for k in ("modes", "hist_width", "hist_layers", "lane_width", "global_width", "heads", "dec_width", "lm_steps"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise SpecError(f"model.{k}", f"expected an integer >= 1, got {v!r}")
+        if self.global_width % self.heads:
+            raise SpecError("model.heads", f"expected a divisor of global_width {self.global_width}, got {self.heads}")
+        for k in ("step_size", "damping"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or v == float("inf"):
+                raise SpecError(f"model.{k}", f"expected a finite number > 0, got {v!r}")
+        for k in ("learned_init", "goal_features"):
+            if not isinstance(getattr(self, k), bool):
+                raise SpecError(f"model.{k}", f"expected true or false, got {getattr(self, k)!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -113,7 +135,9 @@ class Encoder(nn.Module):
         origin = hist[:, -1:].mean(dim=2, keepdim=True)  # scene-centred coordinates
         h = hist - origin
         vec = torch.cat([h[:, :-1], h[:, 1:]], dim=-1)  # (B, H, N, 4)
-        t = torch.linspace(-1, 0, T1 - 1, dtype=h.dtype, device=h.device)[None, :, None, None].expand(B, -1, N, 1)
+        t = torch.linspace(-1, 0, T1 - 1, dtype=h.dtype, device=h.device)[
+            None, :, None, None
+        ].expand(B, -1, N, 1)
         seq = torch.cat([vec, t], -1).permute(0, 2, 1, 3).reshape(B * N, T1 - 1, 5)
         _, (hn, _) = self.lstm(seq)
         z = self.agent_proj(hn[-1].reshape(B, N, -1))  # (B, N, W)
@@ -129,7 +153,9 @@ class Encoder(nn.Module):
             kv = torch.cat([z, lz], 1)
             pad = None
             if lmask is not None:
-                pad = torch.cat([torch.zeros(B, N, dtype=torch.bool, device=z.device), ~lmask.bool()], 1)
+                pad = torch.cat(
+                    [torch.zeros(B, N, dtype=torch.bool, device=z.device), ~lmask.bool()], 1
+                )
             out, _ = self.attn(z, kv, kv, key_padding_mask=pad)
             return self.norm(z + out)
         # vibes: agents attend to the map, then to each other
@@ -140,7 +166,9 @@ class Encoder(nn.Module):
         return self.norm2(z + out)
 
 
-def rollout_torch(x0: torch.Tensor, U: torch.Tensor, dt: float, dynamics: str = "unicycle") -> torch.Tensor:
+def rollout_torch(
+    x0: torch.Tensor, U: torch.Tensor, dt: float, dynamics: str = "unicycle"
+) -> torch.Tensor:
     """Euler rollout in torch: ``x0`` ``(..., 4)``, ``U`` ``(..., K, 2)`` -> states ``(..., K, 4)`` at 1..K.
 
     The same equations as :mod:`epo_casadi.dynamics` (unicycle or double integrator),
@@ -152,12 +180,17 @@ def rollout_torch(x0: torch.Tensor, U: torch.Tensor, dt: float, dynamics: str = 
         a, w = U[..., k, 0], U[..., k, 1]
         if dynamics == "unicycle":
             px, py, v, th = x.unbind(-1)
-            x = torch.stack([px + v * torch.cos(th) * dt, py + v * torch.sin(th) * dt, v + a * dt, th + w * dt], -1)
+            x = torch.stack(
+                [px + v * torch.cos(th) * dt, py + v * torch.sin(th) * dt, v + a * dt, th + w * dt],
+                -1,
+            )
         elif dynamics == "double_integrator":
             px, py, vx, vy = x.unbind(-1)
             x = torch.stack([px + vx * dt, py + vy * dt, vx + a * dt, vy + w * dt], -1)
         else:
-            raise ValueError(f"dynamics: expected 'unicycle' or 'double_integrator', got {dynamics!r}")
+            raise ValueError(
+                f"dynamics: expected 'unicycle' or 'double_integrator', got {dynamics!r}"
+            )
         xs.append(x)
     return torch.stack(xs, -2)
 
@@ -167,15 +200,22 @@ class _Base(nn.Module):
         super().__init__()
         kinds = {a.dynamics.name for a in game.agents}
         if len(kinds) != 1 or len(set(game.nu)) != 1:
-            raise ValueError("game: the decoders are shared across agents, so all agents need the same dynamics")
+            raise ValueError(
+                "game: the decoders are shared across agents, so all agents need the same dynamics"
+            )
         self.cfg, self.game = cfg, game
         self.N, self.K, self.nu = game.N, game.K, game.nu[0]
         self.dynamics = game.agents[0].dynamics.name
         self.encoder = Encoder(cfg)
         W, M = cfg.global_width, cfg.modes
         self.prob = nn.Sequential(
-            nn.Linear(self.N * W + self.N * self.K * 2, 16 * M), nn.BatchNorm1d(16 * M), nn.ReLU(),
-            nn.Linear(16 * M, 16 * M), nn.BatchNorm1d(16 * M), nn.ReLU(), nn.Linear(16 * M, 1),
+            nn.Linear(self.N * W + self.N * self.K * 2, 16 * M),
+            nn.BatchNorm1d(16 * M),
+            nn.ReLU(),
+            nn.Linear(16 * M, 16 * M),
+            nn.BatchNorm1d(16 * M),
+            nn.ReLU(),
+            nn.Linear(16 * M, 1),
         )
 
     def scene_logits(self, z: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
@@ -202,11 +242,18 @@ class EPOModel(_Base):
         self.goal_w = [L[f"w.{a}.goal"].start for a in game.agent_names if f"w.{a}.goal" in L]
         W, M, w = cfg.global_width, cfg.modes, cfg.dec_width
         self.own_dec = nn.Sequential(mlp(W, w, M * self.n_own), nn.Softplus())
-        self.pair_dec = nn.Sequential(mlp(self.N * W, w, M * len(self.pair_idx), norm="layer"), nn.Softplus())
+        self.pair_dec = nn.Sequential(
+            mlp(self.N * W, w, M * len(self.pair_idx), norm="layer"), nn.Softplus()
+        )
         self.init_dec = mlp(W, w, M * self.K * self.nu, norm="layer")
         opts = LMOptions.paper(steps=cfg.lm_steps, step_size=cfg.step_size, damping=cfg.damping)
         if cfg.backward == "implicit":
-            opts = LMOptions(steps=max(cfg.lm_steps, 50), step_size=1.0, damping=cfg.damping, adaptive_damping=False)
+            opts = LMOptions(
+                steps=max(cfg.lm_steps, 50),
+                step_size=1.0,
+                damping=cfg.damping,
+                adaptive_damping=False,
+            )
         self.layer = GameLayer(game, opts, backward=cfg.backward)
         self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
 
@@ -232,17 +279,31 @@ class EPOModel(_Base):
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
         p = self.game_params(scene, z)
-        u0 = self.init_dec(z).reshape(B, self.N, M, self.K * self.nu).permute(0, 2, 1, 3).reshape(B, M, -1)
+        u0 = (
+            self.init_dec(z)
+            .reshape(B, self.N, M, self.K * self.nu)
+            .permute(0, 2, 1, 3)
+            .reshape(B, M, -1)
+        )
         if not self.cfg.learned_init:
             u0 = torch.zeros_like(u0)
         out = self.layer(p.double(), u0.double())
         x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0
         pos = x[..., :2]
-        init_pos = rollout_torch(scene["history"][:, -1][:, None].to(z.dtype).expand(B, M, -1, -1),
-                                 u0.reshape(B, M, self.N, self.K, self.nu), self.game.dt, self.dynamics)[..., :2]
+        init_pos = rollout_torch(
+            scene["history"][:, -1][:, None].to(z.dtype).expand(B, M, -1, -1),
+            u0.reshape(B, M, self.N, self.K, self.nu),
+            self.game.dt,
+            self.dynamics,
+        )[..., :2]
         return {
-            "pos": pos, "states": x, "controls": out.controls.to(z.dtype).reshape(B, M, self.N, self.K, self.nu),
-            "logits": self.scene_logits(z, pos), "params": p, "init_pos": init_pos, "status": out.status,
+            "pos": pos,
+            "states": x,
+            "controls": out.controls.to(z.dtype).reshape(B, M, self.N, self.K, self.nu),
+            "logits": self.scene_logits(z, pos),
+            "params": p,
+            "init_pos": init_pos,
+            "status": out.status,
         }
 
 
@@ -251,7 +312,9 @@ class SCModel(_Base):
 
     def __init__(self, cfg: ModelConfig, game: PotentialGame):
         super().__init__(cfg, game)
-        self.ctrl_dec = mlp(cfg.global_width, cfg.dec_width, cfg.modes * self.K * self.nu, norm="layer")
+        self.ctrl_dec = mlp(
+            cfg.global_width, cfg.dec_width, cfg.modes * self.K * self.nu, norm="layer"
+        )
 
     def forward(self, scene: dict) -> dict:
         z = self.encoder(scene)

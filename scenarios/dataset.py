@@ -469,7 +469,7 @@ def _iter_dask(
                     n_workers=max(1, workers),
                     threads_per_worker=1,
                     processes=True,
-                    dashboard_address=None,
+                    dashboard_address=":0",
                 )
             client = distributed.Client(cluster)
     futures = [client.submit(run_unit, scenario, i, seed, pure=False) for i in units]

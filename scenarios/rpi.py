@@ -331,7 +331,9 @@ class RPIScenario(Scenario):
             "main_mode": FieldSpec((), "int8", "main-game mode the agents execute"),
             "main_share": FieldSpec((), "float32", "share of that main-game mode"),
             "step": FieldSpec((), "int16", "steps since the main game start"),
-            "gt_mode": FieldSpec((), "int8", "ground truth: index of the future mode the agents follow"),
+            "gt_mode": FieldSpec(
+                (), "int8", "ground truth: index of the future mode the agents follow"
+            ),
         }
 
     def meta(self) -> dict:
@@ -544,7 +546,9 @@ class RPIScenario(Scenario):
         # Ground truth: the valid mode closest (mean position error over the steps both
         # cover) to the executed main-mode continuation; at k = 0 it is that mode itself.
         n = min(T, len(executed))
-        err = np.linalg.norm(fut[:, :, :n, :2] - executed[None, :n].transpose(0, 2, 1, 3)[..., :2], axis=-1)
+        err = np.linalg.norm(
+            fut[:, :, :n, :2] - executed[None, :n].transpose(0, 2, 1, 3)[..., :2], axis=-1
+        )
         err = np.where(valid, err.mean(axis=(1, 2)), np.inf)
         return {
             "gt_mode": int(np.argmin(err)),

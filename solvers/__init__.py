@@ -12,7 +12,20 @@ from .result import SolveResult, Status
 from .structured import StructuredGN
 
 __all__ = [
-    "ILQOptions", "MultiModalOptions", "MultiModalResult", "solve_ilq", "solve_multimodal",
-    "IpoptOptions", "IpoptSolver", "StructuredGN", "LMOptions", "NashCertificate", "NashOptions", "SolveResult",
-    "Status", "nash_certificate", "solve_ipopt", "solve_lm",
+    "ILQOptions",
+    "MultiModalOptions",
+    "MultiModalResult",
+    "solve_ilq",
+    "solve_multimodal",
+    "IpoptOptions",
+    "IpoptSolver",
+    "StructuredGN",
+    "LMOptions",
+    "NashCertificate",
+    "NashOptions",
+    "SolveResult",
+    "Status",
+    "nash_certificate",
+    "solve_ipopt",
+    "solve_lm",
 ]

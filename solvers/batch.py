@@ -65,7 +65,9 @@ class BatchFunction:
         for i, a in enumerate(args):
             a = np.ascontiguousarray(a, dtype=np.float64)
             if a.shape != (B, f.nnz_in(i)):
-                raise ValueError(f"{f.name()}: input {f.name_in(i)} must have shape ({B}, {f.nnz_in(i)}), got {a.shape}")
+                raise ValueError(
+                    f"{f.name()}: input {f.name_in(i)} must have shape ({B}, {f.nnz_in(i)}), got {a.shape}"
+                )
             ins.append(a)
         _, buf, ev = self._get(B)
         outs = [np.empty((B, f.nnz_out(i))) for i in range(f.n_out())]

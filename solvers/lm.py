@@ -58,7 +58,9 @@ def _pos(name, v, allow_zero=False):
     ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
     ok = ok and (v >= 0 if allow_zero else v > 0)
     if not ok:
-        raise SpecError(f"lm.{name}", f"expected a finite number {'>=' if allow_zero else '>'} 0, got {v!r}")
+        raise SpecError(
+            f"lm.{name}", f"expected a finite number {'>=' if allow_zero else '>'} 0, got {v!r}"
+        )
 
 
 @dataclass(frozen=True)
@@ -76,8 +78,12 @@ class LMOptions:
     ellipsoidal: bool = False  #: D = diag(J'J) instead of the identity
     gtol: float = 1e-8  #: stop when |J'r|_inf <= gtol (0 disables)
     ftol: float = 1e-12  #: stop when an accepted step lowers E by <= ftol * (1 + E) (0 disables)
-    backend: str = "structured"  #: Gauss-Newton backend: "structured" (stage-wise Riccati, exact) or "dense"
-    compiled: bool = False  #: structured backend: evaluate stage functions as generated C (needs gcc)
+    backend: str = (
+        "structured"  #: Gauss-Newton backend: "structured" (stage-wise Riccati, exact) or "dense"
+    )
+    compiled: bool = (
+        False  #: structured backend: evaluate stage functions as generated C (needs gcc)
+    )
     threads: int | None = None  #: threads for mapped evaluation (None: EPO_THREADS or all cores)
 
     def __post_init__(self):
@@ -93,11 +99,18 @@ class LMOptions:
         _pos("min_damping", self.min_damping, allow_zero=True)
         _pos("max_damping", self.max_damping)
         if not self.damping_up > 1 or not self.damping_down < 1:
-            raise SpecError("lm.damping_up/damping_down", f"expected damping_up > 1 and damping_down < 1, got {self.damping_up}, {self.damping_down}")
+            raise SpecError(
+                "lm.damping_up/damping_down",
+                f"expected damping_up > 1 and damping_down < 1, got {self.damping_up}, {self.damping_down}",
+            )
         for name in ("adaptive_damping", "ellipsoidal"):
             if not isinstance(getattr(self, name), bool):
-                raise SpecError(f"lm.{name}", f"expected true or false, got {getattr(self, name)!r}")
-        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1):
+                raise SpecError(
+                    f"lm.{name}", f"expected true or false, got {getattr(self, name)!r}"
+                )
+        if self.threads is not None and (
+            isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
+        ):
             raise SpecError("lm.threads", f"expected an integer >= 1 or null, got {self.threads!r}")
         _pos("ftol", self.ftol, allow_zero=True)
         if self.backend not in ("dense", "structured"):
@@ -106,7 +119,9 @@ class LMOptions:
     @classmethod
     def paper(cls, **overrides) -> LMOptions:
         """The paper's layer setting: S = 2 fixed steps, alpha = 0.3, lambda = 10."""
-        base = dict(steps=2, step_size=0.3, damping=10.0, adaptive_damping=False, gtol=0.0, ftol=0.0)
+        base = dict(
+            steps=2, step_size=0.3, damping=10.0, adaptive_damping=False, gtol=0.0, ftol=0.0
+        )
         base.update(overrides)
         return cls(**base)
 
@@ -125,7 +140,9 @@ class Linearization:
 class DenseGN:
     """Dense Gauss-Newton backend: ``r``, ``J`` by mapped CasADi, batched Cholesky solves."""
 
-    def __init__(self, game: PotentialGame, threads: int | None = None, functions: dict | None = None):
+    def __init__(
+        self, game: PotentialGame, threads: int | None = None, functions: dict | None = None
+    ):
         self.game = game
         fn = functions or {}
         self.lm_terms = BatchFunction(fn.get("lm_terms") or game.function("lm_terms"), threads)
@@ -142,7 +159,9 @@ class DenseGN:
         return self.energy_fn(U, P)[0][:, 0]
 
     @staticmethod
-    def solve(lin: Linearization, damping: np.ndarray, rhs: np.ndarray, ellipsoidal: bool = False) -> np.ndarray:
+    def solve(
+        lin: Linearization, damping: np.ndarray, rhs: np.ndarray, ellipsoidal: bool = False
+    ) -> np.ndarray:
         """Solve ``(J'J + damping D) x = rhs`` for every problem; ``rhs`` is ``(B, n_u)``."""
         A = lin.JtJ.copy()
         n = A.shape[-1]
@@ -212,7 +231,11 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
     status[bad], active[bad] = Status.NONFINITE, False
 
     def converged_grad(lin_):
-        return np.max(np.abs(lin_.gradient), axis=1) <= opts.gtol if opts.gtol > 0 else np.zeros(B, bool)
+        return (
+            np.max(np.abs(lin_.gradient), axis=1) <= opts.gtol
+            if opts.gtol > 0
+            else np.zeros(B, bool)
+        )
 
     done = converged_grad(lin) & active
     status[done], active[done] = Status.CONVERGED, False
@@ -280,7 +303,9 @@ def _merge(old: Linearization, new: Linearization, keep: np.ndarray) -> Lineariz
         return new
     if hasattr(new, "select"):  # backends with their own (e.g. stage-wise) storage
         return new.select(old, ~keep)
-    out = Linearization(new.r.copy(), new.J.copy(), new.energy.copy(), new.gradient.copy(), new.JtJ.copy())
+    out = Linearization(
+        new.r.copy(), new.J.copy(), new.energy.copy(), new.gradient.copy(), new.JtJ.copy()
+    )
     for name in ("r", "J", "energy", "gradient", "JtJ"):
         getattr(out, name)[~keep] = getattr(old, name)[~keep]
     return out

@@ -104,12 +104,20 @@ class SolveResult:
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name == "energy_history":
-                v = v[(slice(None), index) if not isinstance(index, tuple) else (slice(None), *index)]
+                v = v[
+                    (slice(None), index) if not isinstance(index, tuple) else (slice(None), *index)
+                ]
             elif f.name in ("solver", "wall_time"):
                 pass
             elif f.name == "info":
-                v = {k: (a[index] if isinstance(a, np.ndarray) and a.shape[:1] == np.shape(self.energy)[:1] else a)
-                     for k, a in v.items()}
+                v = {
+                    k: (
+                        a[index]
+                        if isinstance(a, np.ndarray) and a.shape[:1] == np.shape(self.energy)[:1]
+                        else a
+                    )
+                    for k, a in v.items()
+                }
             else:
                 v = v[index]
             kw[f.name] = v

@@ -241,7 +241,7 @@ def test_dask_engine_matches_local(tmp_path):
     ds.generate(ToyScenario(), tmp_path / "local", seed=9, progress=False)
     with (
         distributed.LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):

@@ -39,12 +39,20 @@ def _hand_rollout(model: str, x0, U, dt, L=2.7):
     for a, b in U:
         x, y, s3, s4 = xs[-1]
         if model == "unicycle":  # s3 = v, s4 = theta
-            xs.append([x + s3 * math.cos(s4) * dt, y + s3 * math.sin(s4) * dt, s3 + a * dt, s4 + b * dt])
+            xs.append(
+                [x + s3 * math.cos(s4) * dt, y + s3 * math.sin(s4) * dt, s3 + a * dt, s4 + b * dt]
+            )
         elif model == "double_integrator":  # s3 = vx, s4 = vy
             xs.append([x + s3 * dt, y + s4 * dt, s3 + a * dt, s4 + b * dt])
         else:  # bicycle
-            xs.append([x + s3 * math.cos(s4) * dt, y + s3 * math.sin(s4) * dt, s3 + a * dt,
-                       s4 + s3 * math.tan(b) / L * dt])
+            xs.append(
+                [
+                    x + s3 * math.cos(s4) * dt,
+                    y + s3 * math.sin(s4) * dt,
+                    s3 + a * dt,
+                    s4 + s3 * math.tan(b) / L * dt,
+                ]
+            )
         xs[-1] = np.array(xs[-1])
     return np.array(xs)
 
@@ -56,15 +64,20 @@ def test_rollout_matches_hand_computed(model):
     U = RNG.normal(size=(K, 2)) * 0.4
     g = PotentialGame(GameSpec([AgentSpec("a", model, [Acceleration()], x0=x0)], horizon=K, dt=dt))
     x = np.asarray(g.function("rollout")(U.reshape(-1), g.default_params())).ravel()
-    np.testing.assert_allclose(g.split_states(x)[0], _hand_rollout(model, x0, U, dt), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(
+        g.split_states(x)[0], _hand_rollout(model, x0, U, dt), rtol=1e-13, atol=1e-13
+    )
 
 
 def test_rollout_two_agents_layout_is_agent_major():
     K = 4
     spec = GameSpec(
-        [AgentSpec("a", "unicycle", [Acceleration()], x0=[0, 0, 1, 0]),
-         AgentSpec("b", "double_integrator", [Acceleration()], x0=[5, 5, 0, -1])],
-        horizon=K, dt=0.1,
+        [
+            AgentSpec("a", "unicycle", [Acceleration()], x0=[0, 0, 1, 0]),
+            AgentSpec("b", "double_integrator", [Acceleration()], x0=[5, 5, 0, -1]),
+        ],
+        horizon=K,
+        dt=0.1,
     )
     g = PotentialGame(spec)
     Ua, Ub = RNG.normal(size=(K, 2)), RNG.normal(size=(K, 2))
@@ -74,13 +87,17 @@ def test_rollout_two_agents_layout_is_agent_major():
     x = np.asarray(g.function("rollout")(u, g.default_params())).ravel()
     Xa, Xb = g.split_states(x)
     np.testing.assert_allclose(Xa, _hand_rollout("unicycle", [0, 0, 1, 0], Ua, 0.1), atol=1e-13)
-    np.testing.assert_allclose(Xb, _hand_rollout("double_integrator", [5, 5, 0, -1], Ub, 0.1), atol=1e-13)
+    np.testing.assert_allclose(
+        Xb, _hand_rollout("double_integrator", [5, 5, 0, -1], Ub, 0.1), atol=1e-13
+    )
     assert g.positions(x).shape == (2, K + 1, 2)
 
 
 def test_dynamics_function_is_named():
     f = Unicycle().f
-    assert f.name() == "f_unicycle" and f.name_in() == ["x", "u", "dt"] and f.name_out() == ["x_next"]
+    assert (
+        f.name() == "f_unicycle" and f.name_in() == ["x", "u", "dt"] and f.name_out() == ["x_next"]
+    )
     assert make_dynamics({"type": "bicycle", "wheelbase": 3.0}) == KinematicBicycle(wheelbase=3.0)
     with pytest.raises(SpecError, match="dynamics.type"):
         make_dynamics("boat")
@@ -116,13 +133,17 @@ def test_feature_values_match_numpy():
         TurnRate(): U[:, 1],
         TurnAcceleration(): np.diff(U[:, 1]) / dt,
         ReferenceVelocity(): X[1:, 2] - 1.3,
-        VelocityBound(lower=0.9, upper=1.05): np.maximum(0, X[1:, 2] - 1.05) + np.maximum(0, 0.9 - X[1:, 2]),
+        VelocityBound(lower=0.9, upper=1.05): np.maximum(0, X[1:, 2] - 1.05)
+        + np.maximum(0, 0.9 - X[1:, 2]),
         AccelerationBound(upper=0.2): np.maximum(0, U[:, 0] - 0.2),
-        TurnRateBound(lower=-0.1, upper=0.1): np.maximum(0, U[:, 1] - 0.1) + np.maximum(0, -0.1 - U[:, 1]),
+        TurnRateBound(lower=-0.1, upper=0.1): np.maximum(0, U[:, 1] - 0.1)
+        + np.maximum(0, -0.1 - U[:, 1]),
     }
     for feat, expected in cases.items():
         g = _single(feat, K=K, dt=dt, x0=x0, goal=[3.0, 1.0], vref=1.3)
-        np.testing.assert_allclose(_r(g, u, g.default_params()), expected, rtol=1e-12, atol=1e-12, err_msg=feat.kind)
+        np.testing.assert_allclose(
+            _r(g, u, g.default_params()), expected, rtol=1e-12, atol=1e-12, err_msg=feat.kind
+        )
 
 
 def _dist_polyline(q, pts):
@@ -146,9 +167,13 @@ def test_path_distance_matches_numpy():
 def test_collision_values_and_steps():
     K = 10
     spec = GameSpec(
-        [AgentSpec("a", "double_integrator", [Acceleration()], radius=0.5, x0=[0, 0, 1, 0]),
-         AgentSpec("b", "double_integrator", [Acceleration()], radius=0.3, x0=[1.5, 0.2, -1, 0])],
-        [Collision(every=3, weight=2.0)], horizon=K, dt=0.1,
+        [
+            AgentSpec("a", "double_integrator", [Acceleration()], radius=0.5, x0=[0, 0, 1, 0]),
+            AgentSpec("b", "double_integrator", [Acceleration()], radius=0.3, x0=[1.5, 0.2, -1, 0]),
+        ],
+        [Collision(every=3, weight=2.0)],
+        horizon=K,
+        dt=0.1,
     )
     g = PotentialGame(spec)
     u = np.zeros(g.n_u)
@@ -188,19 +213,33 @@ def _fd_jac(f, u, h=1e-6):
 
 
 ALL_OWN = [
-    (Goal(), "unicycle"), (Velocity(), "unicycle"), (Acceleration(), "unicycle"), (Jerk(), "unicycle"),
-    (TurnRate(), "unicycle"), (TurnAcceleration(), "bicycle"), (ReferenceVelocity(), "double_integrator"),
-    (Path(), "unicycle"), (VelocityBound(lower=0.2, upper=0.9), "unicycle"),
+    (Goal(), "unicycle"),
+    (Velocity(), "unicycle"),
+    (Acceleration(), "unicycle"),
+    (Jerk(), "unicycle"),
+    (TurnRate(), "unicycle"),
+    (TurnAcceleration(), "bicycle"),
+    (ReferenceVelocity(), "double_integrator"),
+    (Path(), "unicycle"),
+    (VelocityBound(lower=0.2, upper=0.9), "unicycle"),
     (AccelerationBound(lower=-0.1, upper=0.1), "double_integrator"),
-    (TurnRateBound(lower=-0.1, upper=0.1), "bicycle"), (Velocity(), "double_integrator"),
+    (TurnRateBound(lower=-0.1, upper=0.1), "bicycle"),
+    (Velocity(), "double_integrator"),
     (Acceleration(), "bicycle"),
 ]
 
 
 @pytest.mark.parametrize("feature,model", ALL_OWN, ids=[f"{f.kind}-{m}" for f, m in ALL_OWN])
 def test_feature_jacobian_matches_finite_differences(feature, model):
-    g = _single(feature, model=model, K=6, x0=[0.1, -0.2, 1.0, 0.4], goal=[2, 1], vref=0.7,
-                path=[[-1, -1], [1, 0.3], [3, 0.5]])
+    g = _single(
+        feature,
+        model=model,
+        K=6,
+        x0=[0.1, -0.2, 1.0, 0.4],
+        goal=[2, 1],
+        vref=0.7,
+        path=[[-1, -1], [1, 0.3], [3, 0.5]],
+    )
     rng = np.random.default_rng(1)
     u = rng.normal(size=g.n_u) * 0.5
     p = g.default_params()
@@ -229,7 +268,9 @@ def test_collision_jacobian_and_hessian_match_finite_differences():
     np.testing.assert_allclose(H, H.T, atol=1e-10)
     r = _r(g, u, p)
     np.testing.assert_allclose(grad(u), J.T @ r, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g.function("gn_hessian")(u, p).full(), J.T @ J, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        g.function("gn_hessian")(u, p).full(), J.T @ J, rtol=1e-12, atol=1e-12
+    )
     assert float(g.function("energy")(u, p)) == pytest.approx(0.5 * r @ r, rel=1e-13)
     rr, Jd = g.function("lm_terms")(u, p)
     np.testing.assert_allclose(np.asarray(Jd), J, atol=0)
@@ -241,10 +282,14 @@ def test_traj_functions_agree_with_single_shooting():
     u = RNG.normal(size=g.n_u) * 0.2
     p = g.default_params()
     x = np.asarray(g.function("rollout")(u, p)).ravel()
-    np.testing.assert_allclose(np.asarray(g.function("traj_residual")(x, u, p)).ravel(), _r(g, u, p), atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(g.function("traj_residual")(x, u, p)).ravel(), _r(g, u, p), atol=1e-14
+    )
     np.testing.assert_allclose(
         np.asarray(g.function("traj_agent_costs")(x, u, p)).ravel(),
-        np.asarray(g.function("agent_costs")(u, p)).ravel(), atol=1e-12)
+        np.asarray(g.function("agent_costs")(u, p)).ravel(),
+        atol=1e-12,
+    )
 
 
 # ------------------------------------------------------------------ the game structure
@@ -255,8 +300,12 @@ def test_pair_feature_is_symmetric():
     g1 = PotentialGame(GameSpec([a, b], [Collision(weight=3.0)], horizon=8, dt=0.1))
     g2 = PotentialGame(GameSpec([b, a], [Collision(weight=3.0)], horizon=8, dt=0.1))
     Ua, Ub = RNG.normal(size=(8, 2)) * 0.3, RNG.normal(size=(8, 2)) * 0.3
-    e1 = np.asarray(g1.function("term_energies")(g1.join_controls([Ua, Ub]), g1.default_params())).ravel()
-    e2 = np.asarray(g2.function("term_energies")(g2.join_controls([Ub, Ua]), g2.default_params())).ravel()
+    e1 = np.asarray(
+        g1.function("term_energies")(g1.join_controls([Ua, Ub]), g1.default_params())
+    ).ravel()
+    e2 = np.asarray(
+        g2.function("term_energies")(g2.join_controls([Ub, Ua]), g2.default_params())
+    ).ravel()
     assert e1[-1] > 0
     assert e1[-1] == pytest.approx(e2[-1], rel=1e-13)
 
@@ -268,9 +317,13 @@ def test_agent_costs_and_pseudo_gradient_follow_theorem_1():
     p = g.default_params()
     e = np.asarray(g.function("term_energies")(u, p)).ravel()
     C_hand = [sum(e[t.index] for t in g.terms if name in t.agents) for name in g.agent_names]
-    np.testing.assert_allclose(np.asarray(g.function("agent_costs")(u, p)).ravel(), C_hand, rtol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(g.function("agent_costs")(u, p)).ravel(), C_hand, rtol=1e-13
+    )
     assert sum(e) == pytest.approx(float(g.function("energy")(u, p)), rel=1e-13)
-    np.testing.assert_allclose(g.function("pseudo_gradient")(u, p), g.function("gradient")(u, p), atol=1e-12)
+    np.testing.assert_allclose(
+        g.function("pseudo_gradient")(u, p), g.function("gradient")(u, p), atol=1e-12
+    )
 
 
 def test_param_layout_names_pack_and_groups():
@@ -320,7 +373,12 @@ def test_terms_cover_the_residual_exactly():
         (lambda: GameSpec([AgentSpec("a")], horizon=0), "horizon"),
         (lambda: GameSpec([AgentSpec("a")], dt=-0.1), "dt"),
         (lambda: GameSpec([AgentSpec("a")], [Collision(every=0)]), "collision.every"),
-        (lambda: GameSpec([AgentSpec("a"), AgentSpec("b")], [{"type": "collision", "pairs": [["a", "c"]]}]), "pairs"),
+        (
+            lambda: GameSpec(
+                [AgentSpec("a"), AgentSpec("b")], [{"type": "collision", "pairs": [["a", "c"]]}]
+            ),
+            "pairs",
+        ),
     ],
 )
 def test_bad_specs_name_the_field(make, field):
@@ -362,15 +420,33 @@ def test_spec_round_trips_through_dict():
     g2 = PotentialGame(spec2)
     u = RNG.normal(size=g.n_u) * 0.3
     assert float(g2.function("energy")(u, g2.default_params())) == pytest.approx(
-        float(g.function("energy")(u, g.default_params())), rel=1e-13)
+        float(g.function("energy")(u, g.default_params())), rel=1e-13
+    )
 
 
 def test_double_integrator_and_bicycle_agents_mix():
     spec = GameSpec(
-        [AgentSpec("car", KinematicBicycle(wheelbase=2.5), [Goal(), Acceleration(), TurnRate()], radius=1.0,
-                   x0=[0, 0, 5, 0], goal=[20, 0]),
-         AgentSpec("ped", DoubleIntegrator(), [Goal(), Acceleration()], radius=0.3, x0=[10, -3, 0, 1], goal=[10, 3])],
-        [Collision()], horizon=10, dt=0.2,
+        [
+            AgentSpec(
+                "car",
+                KinematicBicycle(wheelbase=2.5),
+                [Goal(), Acceleration(), TurnRate()],
+                radius=1.0,
+                x0=[0, 0, 5, 0],
+                goal=[20, 0],
+            ),
+            AgentSpec(
+                "ped",
+                DoubleIntegrator(),
+                [Goal(), Acceleration()],
+                radius=0.3,
+                x0=[10, -3, 0, 1],
+                goal=[10, 3],
+            ),
+        ],
+        [Collision()],
+        horizon=10,
+        dt=0.2,
     )
     g = PotentialGame(spec)
     assert g.nx == [4, 4] and g.n_u == 40

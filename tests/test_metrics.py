@@ -3,13 +3,25 @@
 import pytest
 import torch
 
-from learning.metrics import all_metrics, marginal_to_joint, min_ade, min_fde, min_sade, min_sfde, overlap_rate
+from learning.metrics import (
+    all_metrics,
+    marginal_to_joint,
+    min_ade,
+    min_fde,
+    min_sade,
+    min_sfde,
+    overlap_rate,
+)
 
 
 def _example():
     gt = torch.tensor([[[[0.0, 0.0], [1.0, 0.0]], [[0.0, 5.0], [0.0, 4.0]]]])  # (1, N=2, T=2, 2)
-    m0 = torch.tensor([[[0.0, 1.0], [1.0, 1.0]], [[0.0, 5.0], [0.0, 4.0]]])  # agent 0 off by 1, agent 1 exact
-    m1 = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[3.0, 5.0], [4.0, 4.0]]])  # agent 0 exact, agent 1 off by 3, 4
+    m0 = torch.tensor(
+        [[[0.0, 1.0], [1.0, 1.0]], [[0.0, 5.0], [0.0, 4.0]]]
+    )  # agent 0 off by 1, agent 1 exact
+    m1 = torch.tensor(
+        [[[0.0, 0.0], [1.0, 0.0]], [[3.0, 5.0], [4.0, 4.0]]]
+    )  # agent 0 exact, agent 1 off by 3, 4
     return torch.stack([m0, m1])[None], gt  # pred (1, M=2, N=2, T=2, 2)
 
 

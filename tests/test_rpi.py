@@ -255,7 +255,7 @@ def test_engines_give_identical_shards(tmp_path):
     # one thread per worker: a process's solver buffers are not shared between threads
     with (
         distributed.LocalCluster(
-            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
