@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test setup lint bench clean
+.PHONY: demo test setup lint bench bench-quick clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,8 +25,18 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 
+# Benchmarks (minutes, not part of `make test`); `make bench-quick` is a smoke run.
 bench: $(STAMP)
 	$(BIN)/python bench/bench_lm.py
+	$(BIN)/python bench/bench_ilq.py
+	$(BIN)/python bench/bench_layer.py
+	$(BIN)/python bench/bench_rpi.py --games 10 --pipeline-games 60
+
+bench-quick: $(STAMP)
+	$(BIN)/python bench/bench_lm.py --quick
+	$(BIN)/python bench/bench_ilq.py --quick
+	$(BIN)/python bench/bench_layer.py --quick
+	$(BIN)/python bench/bench_rpi.py --games 2 --pipeline-games 4
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
