@@ -1,0 +1,269 @@
+"""``epo train``, ``epo evaluate``, ``epo show-predictions``, ``epo pipeline``.
+
+Thin click layer over :mod:`learning.train`, :mod:`learning.evaluate`,
+:mod:`learning.show` and :mod:`learning.pipeline`; torch is imported only when a command
+runs. Input errors (missing dataset, unknown split, corrupt checkpoint, unknown model)
+raise the toolkit's typed errors, which :func:`scenarios.cli.main` prints as one
+``error:`` line naming the field, with exit status 2.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from epo_casadi.errors import SpecError
+
+KINDS = ("epo", "sc", "vlstm")
+
+
+def _parse_set(items: tuple[str, ...]) -> dict:
+    """``KEY=VALUE`` model overrides; values are JSON (``64``, ``0.3``, ``false``) or bare strings."""
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SpecError("--set", f"expected KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except ValueError:
+            out[k.strip()] = {"true": True, "false": False}.get(v.strip().lower(), v.strip())
+    return out
+
+
+def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
+    from dataclasses import fields
+
+    from scenarios.dataset import read_manifest
+
+    from .models import ModelConfig
+
+    if kind not in KINDS:
+        raise SpecError("--model", f"expected one of {list(KINDS)}, got {kind!r}")
+    names = {f.name for f in fields(ModelConfig)} - {"kind"}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise SpecError("--set", f"unknown model field(s) {unknown}; allowed: {sorted(names)}")
+    if modes is None:
+        fut = read_manifest(data)["schema"].get("future", {}).get("shape", [2])
+        modes = int(fut[0])
+    try:
+        return ModelConfig(kind=kind, modes=modes, **overrides)
+    except TypeError as e:
+        raise SpecError("--set", str(e)) from None
+
+
+@click.command("train")
+@click.option(
+    "--model",
+    "kind",
+    default="epo",
+    show_default=True,
+    help="epo (ours), sc (V-LSTM + SC) or vlstm (V-LSTM marginal).",
+)
+@click.option(
+    "--data",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Dataset directory (epo generate).",
+)
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Run directory (resumed if it holds a checkpoint).",
+)
+@click.option("--epochs", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--batch-size", type=click.IntRange(min=1), default=32, show_default=True)
+@click.option(
+    "--lr",
+    type=click.FloatRange(min=0, min_open=True),
+    default=5e-5,
+    show_default=True,
+    help="Adam learning rate (paper: 5e-5).",
+)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option(
+    "--modes",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Joint modes M (default: the dataset's).",
+)
+@click.option(
+    "--lm-steps",
+    type=click.IntRange(min=1),
+    default=None,
+    help="S, LM steps of the game layer (default 2).",
+)
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Another ModelConfig field, e.g. --set hist_width=32 (repeatable).",
+)
+@click.option(
+    "--checkpoint-steps",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Also checkpoint every N steps (0: at epoch ends).",
+)
+@click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="torch threads (1 is fastest for these small networks on a shared machine).",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def train_cmd(
+    kind,
+    data,
+    out,
+    epochs,
+    batch_size,
+    lr,
+    seed,
+    modes,
+    lm_steps,
+    overrides,
+    checkpoint_steps,
+    threads,
+    progress,
+):
+    """Train a model on the train split of a dataset; validate on val after every epoch."""
+    from .train import TrainConfig, train
+
+    over = _parse_set(overrides)
+    if lm_steps is not None:
+        over["lm_steps"] = lm_steps
+    model = _model_config(kind, modes, data, over)
+    cfg = TrainConfig(
+        model=model,
+        epochs=epochs,
+        batch_size=batch_size,
+        lr=lr,
+        seed=seed,
+        checkpoint_steps=checkpoint_steps,
+    )
+    res = train(data, out, cfg, progress=progress, threads=threads)
+    if res.history:
+        last = res.history[-1]
+        click.echo(
+            f"{out}: epoch {res.epochs}, step {res.steps}, train loss {last['train_loss']:.4g}, "
+            f"val minADE {last['val_minADE']:.3f} minSADE {last['val_minSADE']:.3f} OR {last['val_OR']:.3f}, "
+            f"{last['samples_per_s']:.1f} samples/s; files: checkpoint.pt best.pt metrics.csv loss.png"
+        )
+
+
+@click.command("evaluate")
+@click.argument("runs", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
+@click.option("--split", default="test", show_default=True, help="train, val or test.")
+@click.option(
+    "--model", "baseline", default=None, help="A baseline to score as well: cv (constant velocity)."
+)
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Write OUT.md, OUT.csv and OUT_runs.csv.",
+)
+@click.option(
+    "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
+)
+@click.option("--batch-size", type=click.IntRange(min=1), default=64, show_default=True)
+@click.option(
+    "--threads", type=click.IntRange(min=1), default=1, show_default=True, help="torch threads."
+)
+@click.option("--progress/--no-progress", default=False, show_default=True)
+def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threads, progress):
+    """Score run directories (mean ± std over runs of one model) and baselines on a split."""
+    from .evaluate import evaluate
+
+    if baseline is not None and baseline != "cv":
+        raise SpecError(
+            "--model",
+            f"expected 'cv' (trained models are given as RUN directories), got {baseline!r}",
+        )
+    if not runs and baseline is None:
+        raise SpecError("RUN", "expected at least one run directory, or --model cv")
+    report = evaluate(
+        list(runs),
+        data,
+        split,
+        cv=baseline == "cv",
+        batch_size=batch_size,
+        checkpoint=checkpoint,
+        progress=progress,
+        threads=threads,
+    )
+    click.echo(report.markdown(), nl=False)
+    if out is not None:
+        paths = report.write(out)
+        click.echo("wrote " + ", ".join(str(p) for p in paths))
+
+
+@click.command("show-predictions")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
+@click.option("--split", default="test", show_default=True, help="train, val or test.")
+@click.option("--index", type=int, default=0, show_default=True, help="Sample index in the split.")
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("predictions.png"),
+    show_default=True,
+)
+@click.option(
+    "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
+)
+def show_cmd(run, data, split, index, out, checkpoint):
+    """Draw one sample with a run's predicted modes, probabilities and (ours) weights; RUN may be cv."""
+    from .show import show_predictions
+
+    click.echo(
+        f"wrote {show_predictions(run, data, index, out, split=split, checkpoint=checkpoint)}"
+    )
+
+
+@click.command("pipeline")
+@click.option(
+    "--out", "out", type=click.Path(path_type=Path), default=Path("epo-pipeline"), show_default=True
+)
+@click.option(
+    "--samples",
+    type=click.IntRange(min=1),
+    default=1200,
+    show_default=True,
+    help="About N RPI samples.",
+)
+@click.option("--epochs", type=click.IntRange(min=1), default=15, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Generation processes (default: usable cores).",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def pipeline_cmd(out, samples, epochs, seed, lr, workers, progress):
+    """Generate a small RPI set, train ours and SC, evaluate with CV, draw predictions."""
+    from .pipeline import run_pipeline
+
+    run_pipeline(
+        out,
+        samples=samples,
+        epochs=epochs,
+        seed=seed,
+        lr=lr,
+        workers=workers,
+        progress=progress,
+        echo=click.echo,
+    )

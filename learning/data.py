@@ -1,0 +1,293 @@
+"""Scene batches for training and evaluation, read from a dataset directory.
+
+A dataset directory is the one :mod:`scenarios.dataset` writes (``manifest.json`` plus
+HDF5 shards). :class:`SceneDataset` reads one split of it:
+
+- small splits (below ``memory_limit_mb``, e.g. the full RPI set at ~1 KB per sample)
+  are read whole into memory once (:meth:`scenarios.dataset.SplitReader.read_all`, one
+  ``read_direct`` per shard and field); larger ones are read batch by batch
+  (:meth:`~scenarios.dataset.SplitReader.read`, one fancy-indexed read per shard and field).
+  Never one file access per sample.
+- :meth:`SceneDataset.batches` yields collated batches (dicts of torch tensors) in a
+  fixed order, or in the permutation of ``(seed, epoch)``: the order of an epoch does
+  not depend on any RNG state, so a resumed training run sees the same batches.
+
+A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)::
+
+    history        (B, H+1, N, 4) float32   states (x, y, v, theta), last = current
+    goals          (B, N, 2)      float32   goal positions
+    history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
+    gt             (B, N, T, 2)   float32   ground-truth future positions
+    gt_states      (B, N, T, 4)   float32   ground-truth future states
+    index          (B,)           int64     sample indices in the split
+
+``history`` and ``goals`` are the scene dict the models of :mod:`learning.models` read.
+The ground truth is chosen by :func:`ground_truth`, the one place that knows how.
+
+The game a model needs for a dataset (agents, horizon, parameter layout) is built from
+the manifest's scenario and recipe by :func:`dataset_game`.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from epo_casadi.errors import SpecError
+from epo_casadi.game import PotentialGame
+from scenarios.dataset import MANIFEST, DatasetError, SplitReader, read_manifest
+
+__all__ = [
+    "REQUIRED_FIELDS",
+    "SceneDataset",
+    "dataset_game",
+    "game_summary",
+    "ground_truth",
+    "register_game",
+]
+
+#: fields training and evaluation cannot do without
+REQUIRED_FIELDS = ("history", "goals", "future")
+#: fields used when present
+OPTIONAL_FIELDS = ("history_valid", "gt_mode")
+
+
+def ground_truth(future, gt_mode=None):
+    """Ground-truth future of each sample: ``future[b, gt_mode[b]]``, or mode 0 without ``gt_mode``.
+
+    ``future`` ``(B, M, N, T, nx)`` (numpy or torch), ``gt_mode`` ``(B,)`` integer mode
+    indices (the subgame mode the agents actually follow) or ``None`` (datasets written
+    before the field existed: the first mode). Returns ``(B, N, T, nx)``.
+    """
+    if gt_mode is None:
+        return future[:, 0]
+    if isinstance(future, torch.Tensor):
+        idx = torch.as_tensor(gt_mode, dtype=torch.long, device=future.device)
+        return future[torch.arange(future.shape[0], device=future.device), idx]
+    idx = np.asarray(gt_mode).astype(np.int64)
+    M = future.shape[1]
+    if idx.size and (idx.min() < 0 or idx.max() >= M):
+        bad = int(idx[(idx < 0) | (idx >= M)][0])
+        raise DatasetError("gt_mode", f"expected a mode index in [0, {M}), got {bad}")
+    return future[np.arange(future.shape[0]), idx]
+
+
+# --------------------------------------------------------------------------------------
+# games of datasets
+# --------------------------------------------------------------------------------------
+def _rpi_game(recipe: dict) -> PotentialGame:
+    from scenarios.rpi import RPIRecipe, RPIScenario
+
+    return RPIScenario(RPIRecipe.from_dict(recipe)).game
+
+
+#: scenario name (manifest ``scenario``) -> builder of its game from the manifest recipe
+GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {"rpi": _rpi_game}
+
+
+def register_game(scenario: str, builder: Callable[[dict], PotentialGame]) -> None:
+    """Make :func:`dataset_game` know the game of another scenario's datasets."""
+    GAME_BUILDERS[scenario] = builder
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_game(scenario: str, recipe_json: str) -> PotentialGame:
+    return GAME_BUILDERS[scenario](json.loads(recipe_json))
+
+
+def dataset_game(directory_or_manifest: str | os.PathLike | Mapping) -> PotentialGame:
+    """The game of a dataset (from its manifest's scenario and recipe; built once per process).
+
+    A model trained or evaluated on the dataset needs this game: the game layer solves
+    it and its agents, horizon and parameter layout size the decoders.
+    """
+    m = (
+        directory_or_manifest
+        if isinstance(directory_or_manifest, Mapping)
+        else read_manifest(directory_or_manifest)
+    )
+    name = m.get("scenario")
+    if name not in GAME_BUILDERS:
+        raise DatasetError(
+            f"{MANIFEST}.scenario",
+            f"no game known for scenario {name!r}; known: {sorted(GAME_BUILDERS)}",
+        )
+    return _cached_game(name, json.dumps(m["recipe"], sort_keys=True))
+
+
+def game_summary(game: PotentialGame) -> dict:
+    """What a trained model depends on: agents, horizon, step, parameter names, radii."""
+    return {
+        "agents": list(game.agent_names),
+        "horizon": int(game.K),
+        "dt": float(game.dt),
+        "param_names": list(game.params.names),
+        "radii": [float(a.radius) for a in game.agents],
+    }
+
+
+def dataset_fingerprint(manifest: Mapping) -> dict:
+    """Identity of a dataset: scenario, recipe and seed (generation is deterministic: equal ones hold the same samples)."""
+    return {k: manifest.get(k) for k in ("scenario", "recipe", "seed")}
+
+
+# --------------------------------------------------------------------------------------
+# the dataset
+# --------------------------------------------------------------------------------------
+class SceneDataset(torch.utils.data.Dataset):
+    """One split of a dataset directory as scene batches (see the module docstring).
+
+    ``in_memory``: ``True`` reads the split once, ``False`` reads per batch, ``None``
+    (default) decides by size against ``memory_limit_mb``. Errors name the field: a
+    missing directory or manifest (:class:`~scenarios.dataset.DatasetError`), an unknown
+    split (:class:`~epo_casadi.errors.SpecError` ``split``), a missing or misshaped field
+    (``DatasetError`` ``manifest.json.schema.<field>``).
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        split: str,
+        in_memory: bool | None = None,
+        memory_limit_mb: float = 1024.0,
+    ):
+        self.directory = Path(directory)
+        self.split = split
+        m = read_manifest(self.directory)
+        schema = m["schema"]
+        where = str(self.directory / MANIFEST)
+        for k in REQUIRED_FIELDS:
+            if k not in schema:
+                raise DatasetError(
+                    f"{where}.schema.{k}",
+                    f"missing; training and evaluation need the fields {list(REQUIRED_FIELDS)}",
+                )
+        shape = {k: tuple(v["shape"]) for k, v in schema.items()}
+        hs, gs, fs = shape["history"], shape["goals"], shape["future"]
+        if len(hs) != 3 or hs[2] != 4:
+            raise DatasetError(f"{where}.schema.history", f"expected shape (H+1, N, 4), got {hs}")
+        N = hs[1]
+        if gs != (N, 2):
+            raise DatasetError(f"{where}.schema.goals", f"expected shape ({N}, 2), got {gs}")
+        if len(fs) != 4 or fs[1] != N or fs[3] < 2:
+            raise DatasetError(
+                f"{where}.schema.future", f"expected shape (M, {N}, T, nx), got {fs}"
+            )
+        self.manifest = m
+        self.n_agents, self.history_steps = N, hs[0]
+        self.modes, self.horizon = fs[0], fs[2]
+        self.fields = list(REQUIRED_FIELDS) + [k for k in OPTIONAL_FIELDS if k in schema]
+        self.reader = SplitReader(self.directory, split, fields=self.fields)
+        per_sample = sum(
+            int(np.prod(shape[k])) * np.dtype(schema[k]["dtype"]).itemsize for k in self.fields
+        )
+        if in_memory is None:
+            in_memory = per_sample * len(self.reader) <= memory_limit_mb * 2**20
+        self.in_memory = bool(in_memory)
+        self._arrays: dict[str, np.ndarray] | None = None
+        if self.in_memory:
+            self._arrays = self._prepare(self.reader.read_all())
+            self.reader.close()
+
+    # ---- facts ---------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    @property
+    def game(self) -> PotentialGame:
+        """The dataset's game (:func:`dataset_game`); checked against the stored shapes."""
+        g = dataset_game(self.manifest)
+        if g.N != self.n_agents or g.K != self.horizon:
+            raise DatasetError(
+                f"{self.directory / MANIFEST}.recipe",
+                f"its game has {g.N} agents and horizon {g.K}, the samples {self.n_agents} "
+                f"agents and {self.horizon} future steps",
+            )
+        return g
+
+    @property
+    def fingerprint(self) -> dict:
+        return dataset_fingerprint(self.manifest)
+
+    # ---- reading -------------------------------------------------------------------------
+    def _prepare(self, raw: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        gt = ground_truth(raw["future"], raw.get("gt_mode"))
+        n = raw["history"].shape[0]
+        valid = raw.get("history_valid")
+        if valid is None:
+            valid = np.ones((n, self.history_steps), bool)
+        return {
+            "history": np.ascontiguousarray(raw["history"], np.float32),
+            "goals": np.ascontiguousarray(raw["goals"], np.float32),
+            "history_valid": np.ascontiguousarray(valid, bool),
+            "gt_states": np.ascontiguousarray(gt, np.float32),
+        }
+
+    def read(self, indices) -> dict[str, np.ndarray]:
+        """Numpy arrays of the samples ``indices`` (any order): the batch fields but ``index``."""
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if self._arrays is not None:
+            n = len(self)
+            if idx.size and (idx.min() < -n or idx.max() >= n):
+                bad = int(idx[(idx < -n) | (idx >= n)][0])
+                raise SpecError(
+                    "index", f"expected an index in [0, {n}) for split {self.split!r}, got {bad}"
+                )
+            return {k: v[idx] for k, v in self._arrays.items()}
+        return self._prepare(self.reader.read(idx))
+
+    def batch(self, indices) -> dict[str, torch.Tensor]:
+        """Collated batch (see the module docstring) of the samples ``indices``."""
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        a = self.read(idx)
+        out = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in a.items()}
+        out["gt"] = out["gt_states"][..., :2]
+        out["index"] = torch.from_numpy(np.where(idx < 0, idx + len(self), idx))
+        return out
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        """One sample (no batch axis); prefer :meth:`batches` for speed."""
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
+            raise SpecError("index", f"expected an integer, got {i!r}")
+        return {k: v[0] for k, v in self.batch([int(i)]).items()}
+
+    def order(self, shuffle: bool = False, seed: int = 0, epoch: int = 0) -> np.ndarray:
+        """Sample order of an epoch: ``0..n-1``, or the permutation drawn from ``(seed, epoch)``."""
+        n = len(self)
+        if not shuffle:
+            return np.arange(n, dtype=np.int64)
+        rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(2, int(epoch))))
+        return rng.permutation(n).astype(np.int64)
+
+    def num_batches(self, batch_size: int) -> int:
+        return -(-len(self) // int(batch_size))
+
+    def batches(
+        self,
+        batch_size: int,
+        shuffle: bool = False,
+        seed: int = 0,
+        epoch: int = 0,
+        start: int = 0,
+    ) -> Iterator[dict[str, torch.Tensor]]:
+        """Batches of ``batch_size`` (the last may be smaller), from batch number ``start`` on."""
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise SpecError("batch_size", f"expected an integer >= 1, got {batch_size!r}")
+        order = self.order(shuffle, seed, epoch)
+        for b in range(int(start), self.num_batches(batch_size)):
+            yield self.batch(order[b * batch_size : (b + 1) * batch_size])
+
+    def close(self) -> None:
+        self.reader.close()
+
+    def __enter__(self) -> SceneDataset:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

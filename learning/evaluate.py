@@ -1,0 +1,278 @@
+"""Evaluation of trained runs and the CV baseline on a split; the paper-style table.
+
+:func:`evaluate_model` scores one predictor on a :class:`learning.data.SceneDataset`
+with :func:`learning.metrics.all_metrics`: minADE, minFDE (marginal), minSADE, minSFDE
+and the overlap rate OR of the most likely joint mode (joint), in metres, averaged over
+the samples. Joint models (ours, SC, CV) give scene probabilities ``softmax(logits)``;
+the marginal V-LSTM gives per-agent probabilities, turned into joint scenes by
+:func:`learning.metrics.marginal_to_joint` as in the paper. The agents' radii for OR come
+from the dataset's game.
+
+:func:`evaluate` scores run directories (written by :func:`learning.train.train`; their
+``best.pt`` by default) and optionally CV on one split and returns an
+:class:`EvalReport`. Runs are grouped by method label (:func:`method_label`: backbone,
+kind and ablation flags, e.g. ``V-LSTM + Ours``): a group of several runs (seeds) is
+reported as ``mean ± std`` (sample standard deviation, ``ddof = 1``, as for the paper's
+three seeds), a single run as its value.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from epo_casadi.errors import SpecError
+
+from .baselines import ConstantVelocity
+from .data import SceneDataset
+from .metrics import all_metrics
+from .models import ModelConfig
+
+__all__ = [
+    "METRICS",
+    "EvalReport",
+    "RunResult",
+    "evaluate",
+    "evaluate_model",
+    "format_mean_std",
+    "method_label",
+    "predict",
+]
+
+METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR")
+BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES"}
+
+
+def predict(model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """``(pos, probs, out)`` of a predictor on a batch: probabilities joint ``(B, M)`` or marginal ``(B, N, M)``."""
+    out = model(batch)
+    if "marginal_logits" in out:
+        probs = torch.softmax(out["marginal_logits"], dim=-1)
+    else:
+        probs = torch.softmax(out["logits"], dim=-1)
+    return out["pos"], probs, out
+
+
+def evaluate_model(
+    model: torch.nn.Module,
+    data: SceneDataset,
+    batch_size: int = 64,
+    progress: bool = False,
+) -> dict[str, float]:
+    """Mean of every metric over ``data`` (and ``samples``); the model is put in eval mode."""
+    radii = torch.tensor([a.radius for a in data.game.agents], dtype=torch.float32)
+    was_training = model.training
+    model.eval()
+    sums = dict.fromkeys(METRICS, 0.0)
+    n = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(data), unit="sample", desc="evaluate", leave=False, dynamic_ncols=True)
+    try:
+        with torch.no_grad():
+            for batch in data.batches(batch_size):
+                pos, probs, _ = predict(model, batch)
+                m = all_metrics(pos.float(), batch["gt"], probs.float(), radii)
+                for k in METRICS:
+                    sums[k] += float(m[k].sum())
+                n += pos.shape[0]
+                if bar is not None:
+                    bar.update(pos.shape[0])
+    finally:
+        if bar is not None:
+            bar.close()
+        model.train(was_training)
+    out = {k: (sums[k] / n if n else math.nan) for k in METRICS}
+    out["samples"] = n
+    return out
+
+
+def method_label(cfg: ModelConfig | None) -> str:
+    """Table label of a model: ``V-LSTM + Ours``, ``V-LSTM + SC``, ``V-LSTM``; ``CV`` for None."""
+    if cfg is None:
+        return "CV"
+    b = BACKBONES.get(cfg.backbone, cfg.backbone)
+    label = {"epo": f"{b} + Ours", "sc": f"{b} + SC", "vlstm": b}[cfg.kind]
+    if cfg.kind == "epo":
+        if not cfg.learned_init:
+            label += " (zero init)"
+        if not cfg.goal_features:
+            label += " (no goal)"
+    return label
+
+
+def format_mean_std(values, digits: int = 3) -> str:
+    """``"m ± s"`` (sample std) for several values, ``"m"`` for one, ``"-"`` for none."""
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    if not v:
+        return "-"
+    if len(v) == 1:
+        return f"{v[0]:.{digits}f}"
+    return f"{np.mean(v):.{digits}f} ± {np.std(v, ddof=1):.{digits}f}"
+
+
+@dataclass
+class RunResult:
+    """Metrics of one run (or CV) on one split."""
+
+    name: str  #: run directory, or "cv"
+    label: str  #: method label, see :func:`method_label`
+    kind: str  #: "epo", "sc", "vlstm" or "cv"
+    seed: int | None
+    epoch: int | None  #: epoch of the evaluated checkpoint
+    samples: int
+    metrics: dict[str, float]
+    seconds: float
+
+
+@dataclass
+class EvalReport:
+    """Results of :func:`evaluate`; :meth:`markdown` is the paper-style table."""
+
+    data_dir: str
+    split: str
+    results: list[RunResult] = field(default_factory=list)
+
+    def groups(self) -> list[tuple[str, list[RunResult]]]:
+        """Results grouped by label, in order of appearance, CV last."""
+        out: dict[str, list[RunResult]] = {}
+        for r in self.results:
+            out.setdefault(r.label, []).append(r)
+        return sorted(out.items(), key=lambda kv: kv[0] == "CV")
+
+    def summary_rows(self) -> list[dict]:
+        rows = []
+        for label, rs in self.groups():
+            row = {"method": label, "runs": len(rs), "samples": rs[0].samples}
+            for k in METRICS:
+                v = [r.metrics[k] for r in rs]
+                row[f"{k}_mean"] = float(np.mean(v))
+                row[f"{k}_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else math.nan
+            rows.append(row)
+        return rows
+
+    def markdown(self) -> str:
+        """The table: one row per method, ``mean ± std`` over its runs; distances in metres."""
+        n = self.results[0].samples if self.results else 0
+        lines = [
+            f"Split `{self.split}` of `{self.data_dir}` ({n} samples). minADE/minFDE marginal, "
+            "minSADE/minSFDE/OR joint; metres; lower is better; mean ± std (ddof 1) over runs.",
+            "",
+            "| Method | runs | " + " | ".join(METRICS) + " |",
+            "|---|---:|" + "---:|" * len(METRICS),
+        ]
+        for label, rs in self.groups():
+            cells = [format_mean_std([r.metrics[k] for r in rs]) for k in METRICS]
+            lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
+        return "\n".join(lines) + "\n"
+
+    def write(self, prefix: str | os.PathLike) -> list[Path]:
+        """``PREFIX.md`` (table), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per run)."""
+        p = Path(prefix)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        md, summ, runs = (
+            p.with_name(p.name + ".md"),
+            p.with_name(p.name + ".csv"),
+            p.with_name(p.name + "_runs.csv"),
+        )
+        md.write_text(self.markdown())
+        _csv(summ, self.summary_rows())
+        _csv(
+            runs,
+            [
+                {
+                    "run": r.name,
+                    "method": r.label,
+                    "kind": r.kind,
+                    "seed": r.seed,
+                    "epoch": r.epoch,
+                    "split": self.split,
+                    "samples": r.samples,
+                    **r.metrics,
+                    "seconds": round(r.seconds, 3),
+                }
+                for r in self.results
+            ],
+        )
+        return [md, summ, runs]
+
+
+def _csv(path: Path, rows: list[dict]) -> None:
+    buf = io.StringIO()
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    path.write_text(buf.getvalue())
+
+
+def evaluate(
+    runs,
+    data_dir: str | os.PathLike,
+    split: str = "test",
+    cv: bool = False,
+    batch_size: int = 64,
+    checkpoint: str = "best",
+    progress: bool = False,
+    threads: int | None = 1,
+) -> EvalReport:
+    """Score run directories (and CV with ``cv=True``) on ``split`` of ``data_dir``.
+
+    ``threads``: torch threads during the call (:func:`learning.train.torch_threads`).
+    """
+    runs = [runs] if isinstance(runs, (str, os.PathLike)) else list(runs or [])
+    if not runs and not cv:
+        raise SpecError("runs", "expected at least one run directory (or cv=True)")
+    from .train import torch_threads
+
+    with torch_threads(threads):
+        return _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress)
+
+
+def _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress) -> EvalReport:
+    from .train import load_model
+
+    data = SceneDataset(data_dir, split)
+    if len(data) == 0:
+        data.close()
+        raise SpecError("split", f"split {split!r} of {data_dir} has no samples")
+    game = data.game
+    report = EvalReport(str(data_dir), split)
+    try:
+        for run in runs:
+            model, cfg, ck = load_model(run, game, which=checkpoint)
+            t0 = time.perf_counter()
+            m = evaluate_model(model, data, batch_size, progress)
+            report.results.append(
+                RunResult(
+                    str(run),
+                    method_label(cfg.model),
+                    cfg.model.kind,
+                    cfg.seed,
+                    int(ck["epoch"]),
+                    int(m.pop("samples")),
+                    m,
+                    time.perf_counter() - t0,
+                )
+            )
+        if cv:
+            t0 = time.perf_counter()
+            m = evaluate_model(ConstantVelocity(game.K, data.modes), data, batch_size, progress)
+            report.results.append(
+                RunResult(
+                    "cv", "CV", "cv", None, None, int(m.pop("samples")), m, time.perf_counter() - t0
+                )
+            )
+    finally:
+        data.close()
+    return report

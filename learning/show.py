@@ -1,0 +1,207 @@
+"""The interpretability view (paper App., "Discussion of Interpretability"): one sample, predictions, weights.
+
+:func:`show_predictions` draws, for one sample of a split, the observed history, the
+ground truth, the dataset's other modes (thin grey), and every predicted joint mode with
+its probability and its scene error (SADE to the ground truth). For ours it adds, per
+agent and mode, the predicted weights of the agent's own energy features and the
+pairwise (collision) weight as bars (log scale), with the weights of the game that
+generated the sample as black markers. The game's solution is invariant to a common
+scale of all weights, so compare ratios between features, not absolute heights.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from epo_casadi.errors import SpecError
+from scenarios.dataset import SplitReader
+
+from .baselines import ConstantVelocity
+from .data import SceneDataset
+from .evaluate import method_label, predict
+from .metrics import marginal_to_joint
+
+__all__ = ["show_predictions"]
+
+AGENT_COLORS = ["black", "tab:purple", "tab:brown", "tab:olive"]
+MODE_COLORS = ["tab:red", "tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:pink"]
+
+
+def show_predictions(
+    run_dir: str | os.PathLike,
+    data_dir: str | os.PathLike,
+    index: int,
+    out_png: str | os.PathLike,
+    split: str = "test",
+    checkpoint: str = "best",
+) -> Path:
+    """Draw sample ``index`` of ``split`` with the predictions of a run (or ``"cv"``) to ``out_png``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
+        raise SpecError("index", f"expected an integer, got {index!r}")
+    with SceneDataset(data_dir, split) as data:
+        game = data.game
+        batch = data.batch([int(index)])
+    with SplitReader(data_dir, split) as r:
+        raw = r[int(index)]
+        agents = r.manifest.get("meta", {}).get("agents") or list(game.agent_names)
+    if str(run_dir) == "cv" and not Path(run_dir).is_dir():
+        model, label, kind = ConstantVelocity(game.K, int(raw["future"].shape[0])), "CV", "cv"
+    else:
+        from .train import load_model
+
+        model, cfg, _ = load_model(run_dir, game, which=checkpoint)
+        label, kind = method_label(cfg.model), cfg.model.kind
+    with torch.no_grad():
+        pos, probs, out = predict(model, batch)
+    if probs.ndim == 3:
+        pos, probs = marginal_to_joint(pos, probs)
+    pos, probs = pos[0].numpy(), probs[0].numpy()  # (M, N, T, 2), (M,)
+    gt = batch["gt"][0].numpy()  # (N, T, 2)
+    hist = batch["history"][0].numpy()  # (H+1, N, 4)
+    hvalid = batch["history_valid"][0].numpy()
+    M, N = pos.shape[:2]
+    show_weights = kind == "epo"
+
+    fig = Figure(figsize=(14 if show_weights else 7.5, 8))
+    FigureCanvasAgg(fig)
+    if show_weights:
+        gs = fig.add_gridspec(N + 1, 2, width_ratios=[1.25, 1], hspace=0.65, wspace=0.18)
+        ax = fig.add_subplot(gs[:, 0])
+    else:
+        ax = fig.add_subplot(1, 1, 1)
+
+    # ---- trajectories
+    for i in range(N):
+        c = AGENT_COLORS[i % len(AGENT_COLORS)]
+        ax.plot(hist[~hvalid, i, 0], hist[~hvalid, i, 1], ":", color=c, alpha=0.3)
+        ax.plot(
+            hist[hvalid, i, 0], hist[hvalid, i, 1], ":", color=c, lw=2, label=f"{agents[i]} history"
+        )
+        ax.add_patch(Circle(hist[-1, i, :2], game.agents[i].radius, fc="none", ec=c, lw=1.5))
+        ax.plot(
+            *batch["goals"][0, i].numpy(),
+            "*",
+            color=c,
+            ms=15,
+            mec="white",
+            label=f"{agents[i]} goal",
+        )
+    fut, valid = raw["future"], raw.get("mode_valid", np.ones(raw["future"].shape[0], bool))
+    gt_mode = int(raw["gt_mode"]) if "gt_mode" in raw else 0
+    for m in range(fut.shape[0]):
+        if m == gt_mode or not valid[m]:
+            continue
+        for i in range(N):
+            xy = np.concatenate([hist[-1:, i, :2], fut[m, i, :, :2]])
+            ax.plot(
+                xy[:, 0],
+                xy[:, 1],
+                "-",
+                color="0.6",
+                lw=1,
+                label="other dataset mode" if i == 0 and m == (1 if gt_mode == 0 else 0) else None,
+            )
+    for i in range(N):
+        xy = np.concatenate([hist[-1:, i, :2], gt[i]])
+        ax.plot(
+            xy[:, 0], xy[:, 1], "--", color="0.15", lw=2.5, label="ground truth" if i == 0 else None
+        )
+    order = np.argsort(-probs)
+    for rank, m in enumerate(order):
+        c = MODE_COLORS[m % len(MODE_COLORS)]
+        sade = float(np.linalg.norm(pos[m] - gt, axis=-1).mean())
+        for i in range(N):
+            xy = np.concatenate([hist[-1:, i, :2], pos[m, i]])
+            ax.plot(
+                xy[:, 0],
+                xy[:, 1],
+                "-",
+                color=c,
+                lw=2.5 if rank == 0 else 1.6,
+                alpha=0.9,
+                marker="os^v"[i % 4],
+                markevery=[len(xy) - 1],
+                ms=6,
+                label=f"mode {m}: p={probs[m]:.2f}, SADE {sade:.2f} m" if i == 0 else None,
+            )
+    pts = np.concatenate(
+        [
+            hist[..., :2].reshape(-1, 2),
+            gt.reshape(-1, 2),
+            pos.reshape(-1, 2),
+            batch["goals"][0].numpy().reshape(-1, 2),
+        ]
+    )
+    lo, hi = pts.min(0), pts.max(0)
+    mid, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1.0) + 0.5
+    ax.set_xlim(mid[0] - half, mid[0] + half)
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+    ax.set_aspect("equal", adjustable="box")
+    ax.grid(alpha=0.3)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, framealpha=0.9)
+    info = [f"{split}[{index}]"]
+    for k in ("main_game", "step"):
+        if k in raw:
+            info.append(f"{k} {int(raw[k])}")
+    ax.set_title(f"{label}: " + ", ".join(info), fontsize=11)
+
+    # ---- weights (ours)
+    if show_weights:
+        p = out["params"][0].detach().numpy()  # (M, n_p)
+        names = list(game.params.names)
+        true = (
+            np.asarray(raw["params"])
+            if "params" in raw and len(raw["params"]) == len(names)
+            else None
+        )
+        own = game.params.group("w_own")
+        pair = game.params.group("w_pair")
+        panels = []
+        for i, a in enumerate(game.agent_names):
+            idx = [j for j in own if names[j].startswith(f"w.{a}.")]
+            panels.append(
+                (f"{agents[i]}: own weights", idx, [names[j][len(f"w.{a}.") :] for j in idx])
+            )
+        panels.append(("pairwise weights", list(pair), [names[j][2:] for j in pair]))
+        width_max = max(len(idx) for _, idx, _ in panels)
+        for row, (title, idx, ticks) in enumerate(panels):
+            axw = fig.add_subplot(gs[row, 1])
+            x = np.arange(len(idx))
+            width = 0.8 / M
+            for m in range(M):
+                axw.bar(
+                    x + (m - (M - 1) / 2) * width,
+                    p[m, idx],
+                    width,
+                    color=MODE_COLORS[m % len(MODE_COLORS)],
+                    label=f"mode {m} (p={probs[m]:.2f})",
+                )
+            if true is not None:
+                axw.plot(x, true[idx], "kx", ms=8, mew=2, label="dataset game")
+            axw.set_yscale("log")
+            axw.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axw.yaxis.set_minor_formatter(NullFormatter())
+            axw.set_xlim(-0.6, width_max - 0.4)
+            axw.set_xticks(x)
+            axw.set_xticklabels(
+                [t.replace("_", " ") for t in ticks], fontsize=8, rotation=20, ha="right"
+            )
+            axw.set_title(title, fontsize=10)
+            axw.grid(alpha=0.3, axis="y")
+            if row == 0:
+                axw.legend(fontsize=7, ncol=M + 1, loc="lower left", bbox_to_anchor=(0, 1.12))
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=100, bbox_inches="tight")
+    return out_png

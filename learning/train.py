@@ -1,0 +1,600 @@
+"""Training: :class:`TrainConfig` and :func:`train` (paper Sec. 4.3, 5, App. F.4).
+
+Optimizer and losses
+    Adam, batch size 32, learning rate ``5e-5`` (the paper's for ours on RPI and exiD).
+    Loss weights ``(lambda_imit, lambda_goal, lambda_prob)`` by model kind
+    (:data:`PAPER_LOSS_WEIGHTS`): ours ``(1, 0.1, 0.1)``; V-LSTM + SC ``(1, 0, 1)``
+    (``L_imit + L_prob``, Sec. 5); V-LSTM marginal: minADE + classification ``(1, -, 1)``.
+    The goal loss is zero on RPI (goals are given). The networks train in float32; the game
+    layer solves in float64 inside and casts back (:mod:`learning.layer`).
+
+A run directory (``out_dir``)::
+
+    config.json      TrainConfig, dataset identity (scenario, recipe, seed), game summary
+    checkpoint.pt    the latest state: model, optimizer, torch RNG, epoch, step, history
+    best.pt          model weights of the epoch with the lowest validation minSADE
+    metrics.csv      one row per epoch: train loss parts, samples/s, validation metrics
+    loss.png         training loss and validation minADE/minSADE per epoch
+    tb/              TensorBoard events (only when ``tensorboard`` is installed)
+
+Checkpoints and resume
+    A checkpoint is written at the end of every epoch (and every ``checkpoint_steps``
+    optimizer steps, if set) to a temporary file, fsynced and renamed: a run killed at
+    any moment leaves the previous checkpoint intact. :func:`train` on a directory that
+    holds a checkpoint continues from it: same model, optimizer and RNG states, and the
+    batches of an epoch come from the permutation of ``(seed, epoch)``
+    (:meth:`learning.data.SceneDataset.order`), so the resumed run takes exactly the
+    steps the uninterrupted one would have taken (tested: equal next-step loss). Raising
+    ``epochs`` and running again trains on; a different setting (other than ``epochs``,
+    ``checkpoint_steps``, ``eval_batch_size``) or another dataset is refused.
+
+BatchNorm in the scene-probability decoder needs two values per channel: a training batch
+of one sample with ``modes = 1`` is skipped (only possible for a last, partial batch).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+
+from epo_casadi.errors import EpoError, SpecError
+
+from .data import SceneDataset, game_summary
+from .losses import LossWeights, marginal_loss, scene_loss
+from .models import ModelConfig, build_model, count_parameters
+
+__all__ = [
+    "PAPER_LOSS_WEIGHTS",
+    "CheckpointError",
+    "TrainConfig",
+    "TrainResult",
+    "compute_loss",
+    "load_checkpoint",
+    "load_model",
+    "torch_threads",
+    "train",
+]
+
+CHECKPOINT_FORMAT = 1
+#: loss weights of the paper by model kind (imitation, goal, probability)
+PAPER_LOSS_WEIGHTS = {
+    "epo": LossWeights(1.0, 0.1, 0.1),
+    "sc": LossWeights(1.0, 0.0, 1.0),
+    "vlstm": LossWeights(1.0, 0.0, 1.0),
+}
+#: settings that may change when a run is resumed
+RESUMABLE_CHANGES = ("epochs", "checkpoint_steps", "eval_batch_size")
+METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR")
+
+
+class CheckpointError(EpoError):
+    """A run directory or checkpoint is missing, unreadable or belongs to another setup."""
+
+    def __init__(self, where: str, message: str):
+        self.where, self.message = where, message
+        super().__init__(f"{where}: {message}")
+
+
+def _int(name, v, lo):
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise SpecError(f"train.{name}", f"expected an integer >= {lo}, got {v!r}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (with the dataset). Frozen; unknown keys fail."""
+
+    model: ModelConfig = ModelConfig()  #: architecture, modes, game-layer steps (S, alpha, lambda)
+    epochs: int = 10  #: passes over the training split
+    batch_size: int = 32  #: samples per optimizer step (paper: 32)
+    lr: float = 5e-5  #: Adam learning rate (paper, ours on RPI/exiD: 5e-5)
+    seed: int = 0  #: initial weights and the shuffling of every epoch
+    loss: LossWeights | None = None  #: None: PAPER_LOSS_WEIGHTS of the model kind
+    checkpoint_steps: int = 0  #: also checkpoint every this many steps (0: at epoch ends only)
+    eval_batch_size: int = 64  #: batch size of the validation pass
+    val_split: str | None = "val"  #: split scored after every epoch (None: none)
+
+    def __post_init__(self):
+        if not isinstance(self.model, ModelConfig):
+            raise SpecError(
+                "train.model", f"expected a ModelConfig, got {type(self.model).__name__}"
+            )
+        if self.loss is not None and not isinstance(self.loss, LossWeights):
+            raise SpecError("train.loss", f"expected LossWeights or None, got {self.loss!r}")
+        _int("epochs", self.epochs, 1)
+        _int("batch_size", self.batch_size, 1)
+        _int("seed", self.seed, 0)
+        _int("checkpoint_steps", self.checkpoint_steps, 0)
+        _int("eval_batch_size", self.eval_batch_size, 1)
+        lr = self.lr
+        if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0 < lr < math.inf:
+            raise SpecError("train.lr", f"expected a finite number > 0, got {lr!r}")
+        if self.val_split not in (None, "train", "val", "test"):
+            raise SpecError(
+                "train.val_split",
+                f"expected 'val', 'test', 'train' or None, got {self.val_split!r}",
+            )
+
+    @property
+    def loss_weights(self) -> LossWeights:
+        """The loss weights used: ``loss``, or the paper's for the model kind."""
+        return self.loss if self.loss is not None else PAPER_LOSS_WEIGHTS[self.model.kind]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["loss"] = asdict(self.loss_weights)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys (also in ``model`` and ``loss``) fail."""
+        if not isinstance(d, dict):
+            raise SpecError("train", f"expected a mapping, got {type(d).__name__}")
+        d = dict(d)
+        for key, klass in (("model", ModelConfig), ("loss", LossWeights)):
+            sub = d.get(key)
+            if isinstance(sub, dict):
+                names = {f.name for f in fields(klass)}
+                unknown = sorted(set(sub) - names)
+                if unknown:
+                    raise SpecError(
+                        f"train.{key}", f"unknown field(s) {unknown}; allowed: {sorted(names)}"
+                    )
+                d[key] = klass(**sub)
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise SpecError("train", f"unknown field(s) {unknown}; allowed: {sorted(names)}")
+        return cls(**d)
+
+
+@dataclass
+class TrainResult:
+    """What one :func:`train` call did."""
+
+    run_dir: str
+    epochs: int  #: epochs completed in the run (all calls)
+    steps: int  #: optimizer steps completed in the run (all calls)
+    history: list[dict]  #: the rows of metrics.csv
+    seconds: float  #: wall time of this call
+    resumed_from: int | None = None  #: step of the checkpoint this call resumed from
+    step_losses: list[tuple[int, float]] = field(default_factory=list)  #: (step, loss) of this call
+
+
+# --------------------------------------------------------------------------------------
+# checkpoints
+# --------------------------------------------------------------------------------------
+def _fsync_replace(tmp: Path, dst: Path) -> None:
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, dst)
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    _fsync_replace(tmp, path)
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    _fsync_replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """A checkpoint written by :func:`train`; :class:`CheckpointError` if missing or corrupt."""
+    p = Path(path)
+    if not p.is_file():
+        raise CheckpointError(str(p), "no such checkpoint file")
+    try:
+        ck = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many kinds for a damaged file
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise CheckpointError(
+            str(p), f"unreadable checkpoint ({type(e).__name__}: {msg[:120]})"
+        ) from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        got = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
+        raise CheckpointError(f"{p}.format", f"expected {CHECKPOINT_FORMAT}, got {got!r}")
+    for key in ("config", "game", "data", "model", "epoch"):
+        if key not in ck:
+            raise CheckpointError(f"{p}.{key}", "missing")
+    return ck
+
+
+def _checkpoint_config(ck: dict, where: str) -> TrainConfig:
+    try:
+        return TrainConfig.from_dict(ck["config"])
+    except (SpecError, TypeError) as e:
+        raise CheckpointError(f"{where}.config", str(e)) from None
+
+
+def check_game(saved: dict, game, where: str) -> None:
+    """Refuse a model trained on a game that differs from ``game`` (agents, horizon, params)."""
+    now = game_summary(game)
+    for k, v in saved.items():
+        if now.get(k) != v:
+            raise CheckpointError(
+                f"{where}.game.{k}",
+                f"the run was trained on a game with {k} {v!r}, the dataset's game has {now.get(k)!r}",
+            )
+
+
+def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
+    """Model of a run directory for ``game`` in eval mode: ``(model, TrainConfig, checkpoint)``.
+
+    ``which``: ``"best"`` (``best.pt``, falling back to ``checkpoint.pt`` when a run has
+    no validation split yet) or ``"last"`` (``checkpoint.pt``).
+    """
+    d = Path(run_dir)
+    if not d.is_dir():
+        raise CheckpointError(str(d), "no such run directory")
+    if which not in ("best", "last"):
+        raise SpecError("checkpoint", f"expected 'best' or 'last', got {which!r}")
+    path = d / "best.pt" if which == "best" and (d / "best.pt").exists() else d / "checkpoint.pt"
+    if not path.exists():
+        raise CheckpointError(
+            str(path), "missing: not a training run directory (or it never finished an epoch)"
+        )
+    ck = load_checkpoint(path)
+    cfg = _checkpoint_config(ck, str(path))
+    check_game(ck["game"], game, str(path))
+    model = build_model(cfg.model, game)
+    try:
+        model.load_state_dict(ck["model"])
+    except (RuntimeError, KeyError, TypeError) as e:
+        raise CheckpointError(
+            f"{path}.model", f"weights do not fit the model ({str(e).splitlines()[0][:160]})"
+        ) from None
+    model.eval()
+    return model, cfg, ck
+
+
+# --------------------------------------------------------------------------------------
+# losses, records
+# --------------------------------------------------------------------------------------
+def compute_loss(
+    kind: str, out: dict, gt: torch.Tensor, weights: LossWeights
+) -> dict[str, torch.Tensor]:
+    """The training loss of a model's output: scene loss (ours, SC) or marginal loss (V-LSTM)."""
+    if kind == "vlstm":
+        return marginal_loss(out["pos"], out["marginal_logits"], gt, weights)
+    return scene_loss(out["pos"], out["logits"], gt, weights)
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    if not rows:
+        return
+    keys = list(rows[0])
+    for r in rows[1:]:
+        keys += [k for k in r if k not in keys]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    w.writerows(rows)
+    _atomic_text(path, buf.getvalue())
+
+
+def plot_history(rows: list[dict], out_png: str | os.PathLike, title: str = "") -> None:
+    """Training loss parts and validation minADE/minSADE per epoch (matplotlib, Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 3.6))
+    FigureCanvasAgg(fig)
+    a1, a2 = fig.subplots(1, 2)
+    ep = [r["epoch"] for r in rows]
+    for k, style in (("train_loss", "-o"), ("train_imitation", "--"), ("train_probability", ":")):
+        a1.plot(ep, [r[k] for r in rows], style, label=k.replace("train_", ""))
+    a1.set_yscale("log")
+    a1.set_xlabel("epoch")
+    a1.set_title("training loss")
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    for k in ("val_minADE", "val_minSADE", "val_minFDE", "val_minSFDE"):
+        vals = [r.get(k, math.nan) for r in rows]
+        if any(math.isfinite(v) for v in vals):
+            a2.plot(ep, vals, "-o", ms=3, label=k[4:])
+    a2.set_xlabel("epoch")
+    a2.set_ylabel("m")
+    a2.set_title("validation")
+    if a2.lines:
+        a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    tmp = Path(out_png).with_name(f".{Path(out_png).name}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    os.replace(tmp, out_png)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None):
+    """Run a block with ``n`` torch intra-op threads (None: leave as is), then restore.
+
+    One thread is the default of the commands: these networks are small, and on a shared
+    2-core machine two OpenMP threads made a training step 10-20x slower than one
+    (measured in ``docs/learning.md``).
+    """
+    if n is None:
+        yield
+        return
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise SpecError("threads", f"expected an integer >= 1 or None, got {n!r}")
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _tensorboard(log_dir: Path, purge_step: int):
+    """A SummaryWriter when tensorboard is installed, else None."""
+    import warnings
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from torch.utils.tensorboard import SummaryWriter
+    except Exception:  # not installed (ImportError) or broken: TensorBoard is optional
+        return None
+    return SummaryWriter(str(log_dir), purge_step=purge_step)
+
+
+# --------------------------------------------------------------------------------------
+# training
+# --------------------------------------------------------------------------------------
+def train(
+    data_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    config: TrainConfig = TrainConfig(),
+    *,
+    progress: bool = True,
+    on_step: Callable[[int, dict], None] | None = None,
+    threads: int | None = 1,
+) -> TrainResult:
+    """Train ``config.model`` on the train split of ``data_dir``; resume ``out_dir`` if it has a checkpoint.
+
+    ``on_step(step, parts)`` runs after every optimizer step (and its checkpoint, if
+    one is due) with the loss parts as floats; tests raise from it to simulate a kill.
+    ``threads``: torch threads during the call (:func:`torch_threads`; None: unchanged).
+    Returns a :class:`TrainResult`; see the module docstring for the files written.
+    """
+    if not isinstance(config, TrainConfig):
+        raise SpecError("config", f"expected a TrainConfig, got {type(config).__name__}")
+    with torch_threads(threads):
+        return _train(data_dir, out_dir, config, progress, on_step)
+
+
+def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> TrainResult:
+    t_call = time.perf_counter()
+    cfg = config
+    kind = cfg.model.kind
+    train_ds = SceneDataset(data_dir, "train")
+    if len(train_ds) == 0:
+        raise SpecError("data", f"{data_dir}: the train split has no samples")
+    game = train_ds.game
+    val_ds = None
+    if cfg.val_split is not None:
+        val_ds = SceneDataset(data_dir, cfg.val_split)
+        if len(val_ds) == 0:
+            val_ds = None
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise CheckpointError(str(out), "exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    ck_path, best_path = out / "checkpoint.pt", out / "best.pt"
+    summary = game_summary(game)
+    fingerprint = train_ds.fingerprint
+
+    state = None
+    if ck_path.exists():
+        state = load_checkpoint(ck_path)
+        old = _checkpoint_config(state, str(ck_path)).to_dict()
+        new = cfg.to_dict()
+        for k in new:
+            if k not in RESUMABLE_CHANGES and old.get(k) != new[k]:
+                raise CheckpointError(
+                    str(ck_path),
+                    f"holds a run with a different {k} ({old.get(k)!r}, now {new[k]!r}); "
+                    "use another output directory",
+                )
+        if json.dumps(state["data"], sort_keys=True) != json.dumps(fingerprint, sort_keys=True):
+            raise CheckpointError(
+                str(ck_path), f"holds a run trained on another dataset than {data_dir}"
+            )
+        check_game(state["game"], game, str(ck_path))
+
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.model, game)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    history: list[dict] = []
+    epoch, step, start_batch = 0, 0, 0
+    sums = {"loss": 0.0, "imitation": 0.0, "probability": 0.0, "samples": 0, "seconds": 0.0}
+    best = math.inf
+    if state is not None:
+        try:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            torch.set_rng_state(state["rng"])
+        except (RuntimeError, KeyError, ValueError, TypeError) as e:
+            raise CheckpointError(
+                str(ck_path), f"does not fit the model ({str(e).splitlines()[0][:160]})"
+            ) from None
+        epoch, step, start_batch = (
+            int(state["epoch"]),
+            int(state["step"]),
+            int(state["step_in_epoch"]),
+        )
+        sums = dict(state["sums"])
+        history = list(state["history"])
+        best = float(state["best"])
+    resumed_from = step if state is not None else None
+
+    info = {
+        "train": cfg.to_dict(),
+        "data": {
+            "directory": str(Path(data_dir).resolve()),
+            **fingerprint,
+            "counts": train_ds.manifest.get("counts"),
+        },
+        "game": summary,
+        "parameters": count_parameters(model),
+        "torch": torch.__version__,
+    }
+    _atomic_text(out / "config.json", json.dumps(info, indent=1) + "\n")
+
+    def snapshot(ep: int, st: int, in_epoch: int) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "config": cfg.to_dict(),
+            "game": summary,
+            "data": fingerprint,
+            "model": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "rng": torch.get_rng_state(),
+            "epoch": ep,
+            "step": st,
+            "step_in_epoch": in_epoch,
+            "sums": dict(sums),
+            "history": history,
+            "best": best,
+        }
+
+    writer = _tensorboard(out / "tb", step) if epoch < cfg.epochs else None
+    weights = cfg.loss_weights
+    step_losses: list[tuple[int, float]] = []
+    nb = train_ds.num_batches(cfg.batch_size)
+    bar = None
+    try:
+        while epoch < cfg.epochs:
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(
+                    total=nb,
+                    initial=start_batch,
+                    desc=f"{kind} epoch {epoch + 1}/{cfg.epochs}",
+                    unit="batch",
+                    dynamic_ncols=True,
+                    leave=False,
+                )
+            model.train()
+            t0 = time.perf_counter() - sums["seconds"]
+            for b, batch in enumerate(
+                train_ds.batches(
+                    cfg.batch_size, shuffle=True, seed=cfg.seed, epoch=epoch, start=start_batch
+                ),
+                start=start_batch,
+            ):
+                n = int(batch["history"].shape[0])
+                if n * cfg.model.modes < 2:  # BatchNorm needs two values per channel
+                    continue
+                res = model(batch)
+                parts = compute_loss(kind, res, batch["gt"], weights)
+                loss = parts["loss"]
+                if not torch.isfinite(loss):
+                    raise EpoError(
+                        f"train: the loss is not finite at epoch {epoch + 1}, step {step + 1} "
+                        f"(the last checkpoint is kept; try a lower lr than {cfg.lr})"
+                    )
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                step += 1
+                vals = {k: v.item() for k, v in parts.items()}
+                for k in ("loss", "imitation", "probability"):
+                    sums[k] += vals[k] * n
+                sums["samples"] += n
+                sums["seconds"] = time.perf_counter() - t0
+                step_losses.append((step, vals["loss"]))
+                if writer is not None:
+                    for k, v in vals.items():
+                        writer.add_scalar(f"train/{k}", v, step)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(
+                        loss=f"{vals['loss']:.4g}",
+                        rate=f"{sums['samples'] / max(sums['seconds'], 1e-9):.1f} samples/s",
+                    )
+                if cfg.checkpoint_steps and step % cfg.checkpoint_steps == 0 and b + 1 < nb:
+                    _atomic_torch_save(snapshot(epoch, step, b + 1), ck_path)
+                if on_step is not None:
+                    on_step(step, vals)
+            if bar is not None:
+                bar.close()
+                bar = None
+            # ---- end of epoch: validate, record, checkpoint
+            seconds = time.perf_counter() - t0
+            ns = max(sums["samples"], 1)
+            row = {
+                "epoch": epoch + 1,
+                "step": step,
+                "seconds": round(seconds, 3),
+                "samples_per_s": round(sums["samples"] / max(seconds, 1e-9), 3),
+                "train_loss": sums["loss"] / ns,
+                "train_imitation": sums["imitation"] / ns,
+                "train_probability": sums["probability"] / ns,
+            }
+            if val_ds is not None:
+                from .evaluate import evaluate_model
+
+                t1 = time.perf_counter()
+                vm = evaluate_model(model, val_ds, batch_size=cfg.eval_batch_size)
+                row.update({f"val_{k}": vm[k] for k in METRICS})
+                row["val_seconds"] = round(time.perf_counter() - t1, 3)
+            else:
+                row.update({f"val_{k}": math.nan for k in METRICS})
+            history.append(row)
+            epoch += 1
+            start_batch = 0
+            sums = {"loss": 0.0, "imitation": 0.0, "probability": 0.0, "samples": 0, "seconds": 0.0}
+            score = row["val_minSADE"]
+            improved = val_ds is None or score < best
+            if improved and val_ds is not None:
+                best = score
+            snap = snapshot(epoch, step, 0)
+            if improved:
+                _atomic_torch_save(
+                    {
+                        k: snap[k]
+                        for k in ("format", "config", "game", "data", "model", "epoch", "step")
+                    }
+                    | {"metrics": row},
+                    best_path,
+                )
+            _atomic_torch_save(snap, ck_path)
+            _write_csv(out / "metrics.csv", history)
+            plot_history(history, out / "loss.png", title=f"{kind}: {out.name}")
+            if writer is not None:
+                for k, v in row.items():
+                    if k.startswith(("val_", "train_")) and math.isfinite(v):
+                        writer.add_scalar(f"epoch/{k}", v, step)
+                writer.flush()
+    finally:
+        if bar is not None:
+            bar.close()
+        if writer is not None:
+            writer.close()
+        train_ds.close()
+        if val_ds is not None:
+            val_ds.close()
+    return TrainResult(
+        str(out), epoch, step, history, time.perf_counter() - t_call, resumed_from, step_losses
+    )
