@@ -25,7 +25,7 @@ kind                    residual                                     time steps
 ======================  ===========================================  ===============
 
 Pair feature (:data:`PAIR_FEATURES`): ``collision``,
-``max(0, r_i + r_j - dist(p_i(x_k), p_j(x_k)))`` every ``every``-th step
+``max(0, r_i + r_j + margin - dist(p_i(x_k), p_j(x_k)))`` every ``every``-th step
 ``k = every, 2 every, ..., <= K`` with the smooth distance
 ``sqrt(dx^2 + dy^2 + eps)`` so derivatives stay finite when two centres coincide.
 It is symmetric in ``(i, j)``, the condition under which the potential's
@@ -371,20 +371,23 @@ class PairFeature:
 class Collision(PairFeature):
     kind: ClassVar[str] = "collision"
     every: int = 1
+    margin: float = 0.0  #: safety distance (m) added to r_i + r_j
 
     def __post_init__(self):
         if not (isinstance(self.every, int) and self.every >= 1):
             raise SpecError("collision.every", f"expected an integer >= 1, got {self.every!r}")
+        m = self.margin
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or m < 0:
+            raise SpecError("collision.margin", f"expected a finite distance >= 0 (m), got {m!r}")
 
     def steps(self, K):
         return list(range(self.every, K + 1, self.every))
 
     def residual(self, a, b):
         pa, pb = a.dynamics.position, b.dynamics.position
+        reach = a.radius + b.radius + float(self.margin)
         return _cols(
-            lambda k: ca.fmax(
-                0, a.radius + b.radius - smooth_distance(pa(a.X[:, k]), pb(b.X[:, k]))
-            ),
+            lambda k: ca.fmax(0, reach - smooth_distance(pa(a.X[:, k]), pb(b.X[:, k]))),
             self.steps(a.K),
         )
 

@@ -171,7 +171,7 @@ def test_collision_values_and_steps():
             AgentSpec("a", "double_integrator", [Acceleration()], radius=0.5, x0=[0, 0, 1, 0]),
             AgentSpec("b", "double_integrator", [Acceleration()], radius=0.3, x0=[1.5, 0.2, -1, 0]),
         ],
-        [Collision(every=3, weight=2.0)],
+        [Collision(every=3, weight=2.0, margin=0.1)],
         horizon=K,
         dt=0.1,
     )
@@ -183,7 +183,7 @@ def test_collision_values_and_steps():
     x = np.asarray(g.function("rollout")(u, p)).ravel()
     Xa, Xb = g.split_states(x)
     d = np.linalg.norm(Xa[[3, 6, 9], :2] - Xb[[3, 6, 9], :2], axis=1)
-    expected = 2.0 * np.maximum(0, 0.8 - d)
+    expected = 2.0 * np.maximum(0, 0.8 + 0.1 - d)
     assert expected.max() > 0  # the term is active in this configuration
     np.testing.assert_allclose(_r(g, u, p)[col.rows], expected, atol=1e-8)
 
@@ -373,6 +373,7 @@ def test_terms_cover_the_residual_exactly():
         (lambda: GameSpec([AgentSpec("a")], horizon=0), "horizon"),
         (lambda: GameSpec([AgentSpec("a")], dt=-0.1), "dt"),
         (lambda: GameSpec([AgentSpec("a")], [Collision(every=0)]), "collision.every"),
+        (lambda: GameSpec([AgentSpec("a")], [Collision(margin=-0.1)]), "collision.margin"),
         (
             lambda: GameSpec(
                 [AgentSpec("a"), AgentSpec("b")], [{"type": "collision", "pairs": [["a", "c"]]}]

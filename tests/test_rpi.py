@@ -284,3 +284,10 @@ def test_ground_truth_mode_is_the_executed_one(unit):
     first = unit["step"] == 0
     assert first.any()
     np.testing.assert_array_equal(gt[first], mm[first])
+
+
+def test_ground_truth_keeps_the_agents_apart(tiny, unit):
+    """The collision margin keeps the ground-truth futures free of overlaps (dist >= 2 r)."""
+    gt = unit["future"][np.arange(len(unit["gt_mode"])), unit["gt_mode"]]
+    dist = np.linalg.norm(gt[:, 0, :, :2] - gt[:, 1, :, :2], axis=-1)
+    assert dist.min() >= 2 * tiny.recipe.radius
