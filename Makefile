@@ -16,8 +16,11 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# The main job: solver comparison on two built-in games, then the end-to-end learning
+# pipeline (small RPI set -> train ours and SC -> evaluate with CV); a few minutes.
 demo: $(STAMP)
-	$(BIN)/epo demo
+	$(BIN)/epo demo --out results/demo
+	$(BIN)/epo pipeline --out results/pipeline
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
