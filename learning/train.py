@@ -48,6 +48,7 @@ from pathlib import Path
 import torch
 
 from epo_casadi.errors import EpoError, SpecError
+from scenarios.dataset import fsync_replace
 
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, marginal_loss, scene_loss
@@ -174,25 +175,16 @@ class TrainResult:
 # --------------------------------------------------------------------------------------
 # checkpoints
 # --------------------------------------------------------------------------------------
-def _fsync_replace(tmp: Path, dst: Path) -> None:
-    fd = os.open(tmp, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, dst)
-
-
 def _atomic_torch_save(obj, path: Path) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save(obj, tmp)
-    _fsync_replace(tmp, path)
+    fsync_replace(tmp, path)
 
 
 def _atomic_text(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
-    _fsync_replace(tmp, path)
+    fsync_replace(tmp, path)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:

@@ -246,7 +246,9 @@ def sha256_file(path: str | os.PathLike, block: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def _fsync_replace(tmp: Path, dst: Path) -> None:
+def fsync_replace(tmp: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Flush ``tmp`` to disk and rename it to ``dst`` atomically (also used for checkpoints)."""
+    tmp, dst = Path(tmp), Path(dst)
     fd = os.open(tmp, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -266,7 +268,7 @@ def _write_json(path: Path, obj: dict) -> None:
     with open(tmp, "w") as f:
         json.dump(obj, f, indent=1, sort_keys=False)
         f.write("\n")
-    _fsync_replace(tmp, path)
+    fsync_replace(tmp, path)
 
 
 def write_shard(
@@ -305,7 +307,7 @@ def write_shard(
                 )
             else:
                 f.create_dataset(k, data=a)
-    _fsync_replace(tmp, path)
+    fsync_replace(tmp, path)
     return n, sha256_file(path)
 
 
