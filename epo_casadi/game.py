@@ -608,6 +608,29 @@ class PotentialGame:
             "lm_terms", [self._r, ca.densify(ca.jacobian(self._r, self._u))], ["r", "J"]
         )
 
+    def generate_c(
+        self,
+        directory: str,
+        names: Sequence[str] = ("residual", "jacobian"),
+        name: str = "epo_game",
+    ) -> str:
+        """Write C source of the named functions to ``directory/name.c``; return its path.
+
+        Plain CasADi code generation (no compiler needed here). To compile and load it as
+        an opt-in speed path use :func:`solvers.codegen.compile_functions`. Avoid Hessians
+        of large games: their C is large and slow to compile.
+        """
+        import os
+
+        if not name.isidentifier():
+            raise SpecError("name", f"expected a C identifier, got {name!r}")
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": True})
+        for n in names:
+            cg.add(self.function(n))
+        os.makedirs(directory, exist_ok=True)
+        cg.generate(os.path.join(directory, ""))
+        return os.path.join(directory, f"{name}.c")
+
     # ---- symbolic access for other builders -----------------------------------------------
     @property
     def symbols(self) -> dict[str, Any]:
