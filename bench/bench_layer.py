@@ -432,7 +432,8 @@ def bench_rpi(args):
         be, compiled = bes["structured+C"]
         split = breakdown(game, be, compiled, args, Pt, Ut)
         print(
-            f"\nN = {N}: n_u = {game.n_u}, n_r = {game.n_r}, backend build {t_build:.1f} s"
+            f"\nN = {N}: n_u = {game.n_u}, n_r = {game.n_r}, backend build {t_build:.1f} s, "
+            f"load average {os.getloadavg()[0]:.1f}"
             + (
                 ""
                 if dense_ok
@@ -479,7 +480,7 @@ class _Clock:
 
 
 def breakdown(game, be, compiled, args, P, U):
-    """Where the time of one forward + backward goes (ms, median-free mean over repeats)."""
+    """Where the time of one forward + backward goes: per part, the median over repeats (ms)."""
     clock = _Clock()
     layer = GameLayer(game, LMOptions.paper(threads=args.threads), backend=be, compiled=compiled)
     for m in ("linearize", "solve", "energy"):
@@ -487,19 +488,11 @@ def breakdown(game, be, compiled, args, P, U):
     core = layer.core
     for m in ("rollout", "rollout_vjp", "step_vjp"):
         f = getattr(core, m)
-        setattr(
-            core,
-            m,
-            type(
-                "W", (), {"__call__": staticmethod(clock.wrap(f"casadi.{m}", f)), "dense": f.dense}
-            )(),
-        )
-    n = args.repeats
-    tot = {"fwd": 0.0, "bwd": 0.0}
-    for i in range(n + 1):
-        if i == 1:
-            clock.t.clear()
-            tot = {"fwd": 0.0, "bwd": 0.0}
+        wrapped = clock.wrap(f"casadi.{m}", f)
+        setattr(core, m, type("W", (), {"__call__": staticmethod(wrapped), "dense": f.dense})())
+    runs = []
+    for i in range(args.repeats + 1):
+        clock.t.clear()
         u = U.detach().clone().requires_grad_()
         p = P.detach().clone().requires_grad_()
         clock.phase = "fwd"
@@ -509,20 +502,22 @@ def breakdown(game, be, compiled, args, P, U):
         clock.phase = "bwd"
         (out.states.square().mean() + out.controls.square().mean()).backward()
         t2 = time.perf_counter()
-        tot["fwd"] += t1 - t0
-        tot["bwd"] += t2 - t1
+        if i:
+            runs.append(({"fwd": t1 - t0, "bwd": t2 - t1}, dict(clock.t)))
     for m in ("linearize", "solve", "energy"):  # undo the instance patches
         delattr(be, m)
     lines = []
     for ph in ("fwd", "bwd"):
-        parts = {k[1]: v / n for k, v in clock.t.items() if k[0] == ph}
-        rest = tot[ph] / n - sum(parts.values())
+        names = sorted({k[1] for _, t in runs for k in t if k[0] == ph})
+        parts = {n: statistics.median(t.get((ph, n), 0.0) for _, t in runs) for n in names}
+        rest = statistics.median(
+            tot[ph] - sum(v for k, v in t.items() if k[0] == ph) for tot, t in runs
+        )
+        total = statistics.median(tot[ph] for tot, _ in runs)
         cells = ", ".join(
             f"{k} {v * 1e3:.1f}" for k, v in sorted(parts.items(), key=lambda kv: -kv[1])
         )
-        lines.append(
-            f"  {ph}: {tot[ph] / n * 1e3:.1f} ms = {cells}, torch/numpy glue {rest * 1e3:.1f}"
-        )
+        lines.append(f"  {ph}: {total * 1e3:.1f} ms = {cells}, torch/numpy glue {rest * 1e3:.1f}")
     return lines
 
 
@@ -582,7 +577,9 @@ def bench_grid(args):
     for S in Ss:
         for N in Ns:
             table[S, N] = one(N, S, 4)
-    print("\n  M = 4; rows S, columns N; cell: fwd / fwd+bwd [paper]")
+    print(
+        f"\n  M = 4; rows S, columns N; cell: fwd / fwd+bwd [paper]; load {os.getloadavg()[0]:.1f}"
+    )
     print("  S \\ N " + "".join(f"{N:>26d}" for N in Ns))
     for S in Ss:
         cells = "".join(
@@ -606,6 +603,12 @@ def main(argv=None):
     )
     ap.add_argument(
         "--threads", type=int, default=None, help="CasADi/torch threads (default: all cores)"
+    )
+    ap.add_argument(
+        "--torch-threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: --threads)",
     )
     ap.add_argument(
         "--blas-threads", type=int, default=1, help="numpy BLAS threads (dense backend; default 1)"
@@ -637,13 +640,16 @@ def main(argv=None):
         args.threads = (
             len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
         )
-    if torch.get_num_threads() != args.threads:
+    tt = args.threads if args.torch_threads is None else args.torch_threads
+    if torch.get_num_threads() != tt:
         # (only when it changes: with torch 2.13 CPU here, set_num_threads(2) on a process
         # already at 2 threads made batched torch.linalg.solve fail inside MKL and hang)
-        torch.set_num_threads(args.threads)
+        torch.set_num_threads(tt)
     print(
-        f"bench_layer: torch {torch.__version__}, {args.threads} threads, repeats {args.repeats}"
-        f"{', quick' if args.quick else ''}"
+        f"bench_layer: torch {torch.__version__}, {args.threads} CasADi threads, "
+        f"{torch.get_num_threads()} torch threads, {os.environ['OPENBLAS_NUM_THREADS']} numpy BLAS "
+        f"threads, repeats {args.repeats}{', quick' if args.quick else ''}; load average "
+        f"{os.getloadavg()[0]:.1f} on {len(os.sched_getaffinity(0))} cores"
     )
     if args.part in ("all", "rpi"):
         bench_rpi(args)

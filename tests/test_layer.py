@@ -308,11 +308,20 @@ def learning_spec(w_goal: float, w_acc: float) -> GameSpec:
     return GameSpec([a0, a1], [Collision(weight=3.0)], horizon=10, dt=0.2)
 
 
-def test_learning_recovers_weight_ratio():
+@pytest.mark.parametrize(
+    "backward, options",
+    [
+        ("implicit", LMOptions(steps=100)),
+        # the paper's mode with enough fixed-damping steps to be nearly converged
+        ("unrolled", LMOptions.paper(steps=10, step_size=1.0, damping=0.1)),
+    ],
+    ids=["implicit", "unrolled_10"],
+)
+def test_learning_recovers_weight_ratio(backward, options):
     """True goal : acceleration = 3 : 1; learning starts from 1 : 3 (turn-rate weight fixed)."""
     torch.manual_seed(0)
     game = PotentialGame(learning_spec(3.0, 1.0))
-    layer = GameLayer(game, LMOptions(steps=100), "implicit")
+    layer = GameLayer(game, options, backward)
     rng = np.random.default_rng(5)
     B = 6
     x0 = layer.default_params()[layer.param_index("x0")].repeat(B, 1)
