@@ -405,6 +405,7 @@ class PotentialGame:
         self.n_p = self.params.size
         self._build()
         self._cache: dict[str, ca.Function] = {}
+        self._derived: dict = {}
 
     # ---- layout ----------------------------------------------------------------------
     def _layout(self) -> ParamLayout:
@@ -560,6 +561,19 @@ class PotentialGame:
             )
         self._cache[name] = f
         return f
+
+    def cached(self, key, factory):
+        """The object stored under ``key``, made by ``factory()`` on first use.
+
+        The one cache for what solvers derive from a game (backends, NLPs, mapped or
+        generated functions): it lives exactly as long as the game. ``key`` must be
+        hashable and name everything the object depends on (e.g. its options).
+        """
+        try:
+            return self._derived[key]
+        except KeyError:
+            value = self._derived[key] = factory()
+            return value
 
     def functions(self) -> dict[str, ca.Function]:
         return {n: self.function(n) for n in self.FUNCTIONS}

@@ -81,7 +81,6 @@ not supported.
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Mapping
 from typing import NamedTuple
 
@@ -140,7 +139,6 @@ class LayerOutput(NamedTuple):
 # --------------------------------------------------------------------------------------
 # CasADi functions of the backward pass, built once per game
 # --------------------------------------------------------------------------------------
-_FUNCTIONS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _build(game: PotentialGame, name: str) -> ca.Function:
@@ -184,10 +182,7 @@ def layer_functions(game: PotentialGame, name: str) -> ca.Function:
     gradient of ``xbar'x(u, p)``. ``gradient_p_vjp(u, p, w) -> gp``: gradient w.r.t.
     ``p`` of ``w' grad_u E(u, p)`` (the cross term of the implicit mode).
     """
-    cache = _FUNCTIONS.setdefault(game, {})
-    if name not in cache:
-        cache[name] = _build(game, name)
-    return cache[name]
+    return game.cached(("layer", name), lambda: _build(game, name))
 
 
 # --------------------------------------------------------------------------------------

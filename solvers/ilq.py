@@ -885,15 +885,12 @@ def get_solver(
     """The cached :class:`ILQSolver` of ``game``, ``costs`` and ``hessian``, built on first use."""
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
-    # Kept on the game itself, so the solvers live exactly as long as the game (as
-    # solvers.ipopt does); the entry keeps ``costs`` alive, so its id is not reused.
-    per_game = game.__dict__.setdefault("_ilq_solvers", {})
-    key = (None if costs is None else id(costs), hessian)
-    hit = per_game.get(key)
-    if hit is None or hit[0] is not costs:
-        hit = (costs, ILQSolver(game, costs, hessian))
-        per_game[key] = hit
-    return hit[1]
+    # The entry keeps ``costs`` alive, so its id is not reused while cached.
+    key = ("ilq", None if costs is None else id(costs), hessian)
+    costs_, solver = game.cached(key, lambda: (costs, ILQSolver(game, costs, hessian)))
+    if costs_ is not costs:  # pragma: no cover - guarded by keeping costs alive
+        raise RuntimeError("iLQ solver cache returned another cost function")
+    return solver
 
 
 def solve_ilq(

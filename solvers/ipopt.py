@@ -332,12 +332,7 @@ class IpoptSolver:
 
 
 def _solver_for(game: PotentialGame, opts: IpoptOptions) -> IpoptSolver:
-    # Kept on the game itself, so the solvers live exactly as long as the game (a module
-    # level WeakKeyDictionary would not work: its values refer back to the game).
-    per_game = game.__dict__.setdefault("_ipopt_solvers", {})
-    if opts not in per_game:
-        per_game[opts] = IpoptSolver(game, opts)
-    return per_game[opts]
+    return game.cached(("ipopt", opts), lambda: IpoptSolver(game, opts))
 
 
 def solve_ipopt(

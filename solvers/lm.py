@@ -184,11 +184,22 @@ class DenseGN:
 
 
 def make_backend(game: PotentialGame, options: LMOptions):
-    if options.backend == "structured":
-        from .structured import StructuredGN  # optional fast path
+    """The Gauss-Newton backend ``options`` name, built once per game (``game.cached``)."""
+    key = ("lm_backend", options.backend, options.threads, options.compiled)
 
-        return StructuredGN(game, threads=options.threads, compiled=options.compiled)
-    return DenseGN(game, threads=options.threads)
+    def build():
+        if options.backend == "structured":
+            from .structured import StructuredGN
+
+            return StructuredGN(game, threads=options.threads, compiled=options.compiled)
+        return DenseGN(game, threads=options.threads)
+
+    return game.cached(key, build)
+
+
+def batch_function(game: PotentialGame, name: str, threads: int | None = None) -> BatchFunction:
+    """:class:`BatchFunction` of the game's named function, built once per game and threads."""
+    return game.cached(("batch", name, threads), lambda: BatchFunction(game.function(name), threads))
 
 
 def solve_lm(
@@ -281,7 +292,7 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         lam_hist.append(lam.copy())
 
     X = _rollout(game, U, P, opts.threads)
-    C = BatchFunction(game.function("agent_costs"), opts.threads)(U, P)[0]
+    C = batch_function(game, "agent_costs", opts.threads)(U, P)[0]
     res = SolveResult(
         solver="lm",
         controls=U,
@@ -312,4 +323,4 @@ def _merge(old: Linearization, new: Linearization, keep: np.ndarray) -> Lineariz
 
 
 def _rollout(game: PotentialGame, U, P, threads=None) -> np.ndarray:
-    return BatchFunction(game.function("rollout"), threads)(U, P)[0]
+    return batch_function(game, "rollout", threads)(U, P)[0]

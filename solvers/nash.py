@@ -230,7 +230,4 @@ def nash_certificate(
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     opts = check_options(NashOptions, options, "nash")
-    per_game = game.__dict__.setdefault("_nash_checkers", {})  # lives as long as the game
-    if opts not in per_game:
-        per_game[opts] = NashChecker(game, opts)
-    return per_game[opts].certify(u, p)
+    return game.cached(("nash", opts), lambda: NashChecker(game, opts)).certify(u, p)

@@ -202,3 +202,18 @@ def test_ill_conditioned_problem_does_not_abort_batch():
     P[1, g.params["w.di.goal"].start] = 1e100  # J'J + lambda I numerically singular
     res = solve_lm(g, P)
     assert res.status[0] is Status.CONVERGED
+
+
+def test_backend_is_built_once_per_game_and_reused():
+    """solve_lm must not rebuild its Gauss-Newton backend (40 ms) on every call."""
+    from solvers.lm import make_backend
+
+    g = crossing_game(K=5)
+    opts = LMOptions(steps=3)
+    assert make_backend(g, opts) is make_backend(g, opts)
+    assert make_backend(g, LMOptions(backend="dense")) is not make_backend(g, opts)
+    first, second = (
+        solve_lm(g, g.default_params(), options=opts),
+        solve_lm(g, g.default_params(), options=opts),
+    )
+    np.testing.assert_array_equal(first.controls, second.controls)
