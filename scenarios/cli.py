@@ -27,10 +27,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("scenarios.commands.demo:demo", "Run the main job on built-in defaults."),
     "generate": ("scenarios.commands.generate:generate", "Generate a dataset (e.g. rpi)."),
     "data": ("scenarios.commands.data:data", "Verify or show a generated dataset."),
-    "train": ("learning.commands:train_cmd", "Train ours (epo), V-LSTM + SC (sc) or V-LSTM (vlstm)."),
-    "evaluate": ("learning.commands:evaluate_cmd", "Score runs and CV on a split: the paper's table."),
-    "show-predictions": ("learning.commands:show_cmd", "Draw one sample's predicted modes and weights."),
-    "pipeline": ("learning.commands:pipeline_cmd", "Small end to end: data, train, evaluate, figures."),
+    "train": (
+        "learning.commands:train_cmd",
+        "Train ours (epo), V-LSTM + SC (sc) or V-LSTM (vlstm).",
+    ),
+    "evaluate": (
+        "learning.commands:evaluate_cmd",
+        "Score runs and CV on a split: the paper's table.",
+    ),
+    "show-predictions": (
+        "learning.commands:show_cmd",
+        "Draw one sample's predicted modes and weights.",
+    ),
+    "pipeline": (
+        "learning.commands:pipeline_cmd",
+        "Small end to end: data, train, evaluate, figures.",
+    ),
 }
 
 

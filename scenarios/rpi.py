@@ -96,7 +96,7 @@ from epo_casadi import (
     Velocity,
     VelocityBound,
 )
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_number
 
 from .dataset import FieldSpec, Scenario
 
@@ -108,19 +108,7 @@ AGENTS = ("robot", "pedestrian")
 
 
 def _num(name, v, lo=None, hi=None, integer=False):
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    if integer:
-        ok = ok and isinstance(v, int)
-    if ok and lo is not None:
-        ok = v >= lo
-    if ok and hi is not None:
-        ok = v <= hi
-    if not ok:
-        rng = f" in [{lo}, {hi}]" if hi is not None else (f" >= {lo}" if lo is not None else "")
-        raise SpecError(
-            f"rpi.{name}",
-            f"expected {'an integer' if integer else 'a finite number'}{rng}, got {v!r}",
-        )
+    check_number(f"rpi.{name}", v, lo=lo, hi=hi, integer=integer)
 
 
 def _pair(name, v, positive=False, ordered=False):
@@ -374,7 +362,10 @@ class RPIScenario(Scenario):
         r = self.recipe
         w = 0.5 * (r.collision_weight[0] + r.collision_weight[1])
         return GameSpec(
-            self.agent_specs(), [Collision(weight=w, every=1, margin=r.collision_margin)], horizon=r.horizon, dt=r.dt
+            self.agent_specs(),
+            [Collision(weight=w, every=1, margin=r.collision_margin)],
+            horizon=r.horizon,
+            dt=r.dt,
         )
 
     @cached_property

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_number
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
@@ -133,21 +133,10 @@ class IpoptOptions:
 
     def __post_init__(self):
         for name in ("max_iter", "acceptable_iter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise SpecError(f"ipopt.{name}", f"expected an integer >= 0, got {v!r}")
+            check_number(f"ipopt.{name}", getattr(self, name), lo=0, integer=True)
         for name in ("tol", "acceptable_tol"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not math.isfinite(v)
-                or v <= 0
-            ):
-                raise SpecError(f"ipopt.{name}", f"expected a finite number > 0, got {v!r}")
-        pl = self.print_level
-        if isinstance(pl, bool) or not isinstance(pl, int) or not 0 <= pl <= 12:
-            raise SpecError("ipopt.print_level", f"expected an integer 0..12, got {pl!r}")
+            check_number(f"ipopt.{name}", getattr(self, name), lo=0, lo_open=True)
+        check_number("ipopt.print_level", self.print_level, lo=0, hi=12, integer=True)
         if self.hessian not in ("exact", "gn"):
             raise SpecError("ipopt.hessian", f"expected 'exact' or 'gn', got {self.hessian!r}")
         if not isinstance(self.linear_solver, str) or not self.linear_solver:

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_number
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
@@ -55,12 +55,7 @@ def check_options(cls, values: dict | None, where: str):
 
 
 def _pos(name, v, allow_zero=False):
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
-    ok = ok and (v >= 0 if allow_zero else v > 0)
-    if not ok:
-        raise SpecError(
-            f"lm.{name}", f"expected a finite number {'>=' if allow_zero else '>'} 0, got {v!r}"
-        )
+    check_number(f"lm.{name}", v, lo=0, lo_open=not allow_zero)
 
 
 @dataclass(frozen=True)
@@ -199,7 +194,9 @@ def make_backend(game: PotentialGame, options: LMOptions):
 
 def batch_function(game: PotentialGame, name: str, threads: int | None = None) -> BatchFunction:
     """:class:`BatchFunction` of the game's named function, built once per game and threads."""
-    return game.cached(("batch", name, threads), lambda: BatchFunction(game.function(name), threads))
+    return game.cached(
+        ("batch", name, threads), lambda: BatchFunction(game.function(name), threads)
+    )
 
 
 def solve_lm(

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from epo_casadi.dynamics import DoubleIntegrator
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
 from .lm import check_options
@@ -80,19 +80,8 @@ class MultiModalOptions:
                 "multimodal.linkage", f"expected one of {LINKAGES}, got {self.linkage!r}"
             )
         for name in ("cluster_tol", "pass_angle", "collision_tol"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not math.isfinite(v)
-                or v < 0
-            ):
-                raise SpecError(f"multimodal.{name}", f"expected a finite number >= 0, got {v!r}")
-        if not isinstance(self.accept_max_iter, bool):
-            raise SpecError(
-                "multimodal.accept_max_iter",
-                f"expected True or False, got {self.accept_max_iter!r}",
-            )
+            check_number(f"multimodal.{name}", getattr(self, name), lo=0)
+        check_bool("multimodal.accept_max_iter", self.accept_max_iter)
 
 
 @dataclass(frozen=True)

@@ -26,13 +26,12 @@ once per game and options (parameters: ``p`` and the others' controls) and cache
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, fields
 
 import casadi as ca
 import numpy as np
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
 from .lm import check_options
@@ -52,24 +51,9 @@ class NashOptions:
 
     def __post_init__(self):
         for name in ("stat_tol", "gap_tol", "tol"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not math.isfinite(v)
-                or v <= 0
-            ):
-                raise SpecError(f"nash.{name}", f"expected a finite number > 0, got {v!r}")
-        if (
-            isinstance(self.max_iter, bool)
-            or not isinstance(self.max_iter, int)
-            or self.max_iter < 0
-        ):
-            raise SpecError("nash.max_iter", f"expected an integer >= 0, got {self.max_iter!r}")
-        if not isinstance(self.best_response, bool):
-            raise SpecError(
-                "nash.best_response", f"expected True or False, got {self.best_response!r}"
-            )
+            check_number(f"nash.{name}", getattr(self, name), lo=0, lo_open=True)
+        check_number("nash.max_iter", self.max_iter, lo=0, integer=True)
+        check_bool("nash.best_response", self.best_response)
 
 
 @dataclass(frozen=True, eq=False)

@@ -475,3 +475,24 @@ def test_generate_c_writes_compilable_source(tmp_path):
     u = RNG.normal(size=g.n_u) * 0.3
     p = g.default_params()
     assert float(f(u, p)) == pytest.approx(float(g.function("energy")(u, p)), rel=1e-12)
+
+
+def test_check_number_and_bool_name_the_field():
+    from epo_casadi.errors import check_bool, check_number
+
+    assert check_number("x", 0.5, lo=0, lo_open=True) == 0.5
+    assert check_number("n", 3, lo=0, hi=12, integer=True) == 3
+    for bad, kw, msg in [
+        (0.0, {"lo": 0, "lo_open": True}, "> 0"),
+        (-1, {"lo": 0}, ">= 0"),
+        (2.5, {"integer": True}, "an integer"),
+        (13, {"lo": 0, "hi": 12, "integer": True}, r"in \[0, 12\]"),
+        (True, {}, "finite number"),
+        (math.nan, {}, "finite number"),
+    ]:
+        with pytest.raises(SpecError, match=msg) as ei:
+            check_number("opt.field", bad, **kw)
+        assert ei.value.field == "opt.field"
+    assert check_bool("b", False) is False
+    with pytest.raises(SpecError, match="True or False"):
+        check_bool("b", 1)
