@@ -15,13 +15,17 @@ HDF5 shards). :class:`SceneDataset` reads one split of it:
 A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)::
 
     history        (B, H+1, N, 4) float32   states (x, y, v, theta), last = current
-    goals          (B, N, 2)      float32   goal positions
+    goals          (B, N, 2)      float32   goal positions (if the dataset has them)
+    goal_candidates (B, N, G, 2)  float32   candidate goal points (if the dataset has them)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states
     index          (B,)           int64     sample indices in the split
 
-``history`` and ``goals`` are the scene dict the models of :mod:`learning.models` read.
+``history``, ``goals`` and ``goal_candidates`` are the scene dict the models of
+:mod:`learning.models` read. Only ``history`` and ``future`` are required: a dataset
+without ``goals`` suits ours with a goal decoder (``goal_decoder="candidates"`` or
+``"regress"``) and the baselines.
 The ground truth is chosen by :func:`ground_truth`, the one place that knows how.
 
 The game a model needs for a dataset (agents, horizon, parameter layout) is built from
@@ -53,9 +57,9 @@ __all__ = [
 ]
 
 #: fields training and evaluation cannot do without
-REQUIRED_FIELDS = ("history", "goals", "future")
+REQUIRED_FIELDS = ("history", "future")
 #: fields used when present
-OPTIONAL_FIELDS = ("history_valid", "gt_mode")
+OPTIONAL_FIELDS = ("goals", "goal_candidates", "history_valid", "gt_mode")
 
 
 def ground_truth(future, gt_mode=None):
@@ -169,12 +173,19 @@ class SceneDataset(torch.utils.data.Dataset):
                     f"missing; training and evaluation need the fields {list(REQUIRED_FIELDS)}",
                 )
         shape = {k: tuple(v["shape"]) for k, v in schema.items()}
-        hs, gs, fs = shape["history"], shape["goals"], shape["future"]
+        hs, fs = shape["history"], shape["future"]
         if len(hs) != 3 or hs[2] != 4:
             raise DatasetError(f"{where}.schema.history", f"expected shape (H+1, N, 4), got {hs}")
         N = hs[1]
-        if gs != (N, 2):
-            raise DatasetError(f"{where}.schema.goals", f"expected shape ({N}, 2), got {gs}")
+        if "goals" in shape and shape["goals"] != (N, 2):
+            raise DatasetError(
+                f"{where}.schema.goals", f"expected shape ({N}, 2), got {shape['goals']}"
+            )
+        gc = shape.get("goal_candidates")
+        if gc is not None and (len(gc) != 3 or gc[0] != N or gc[2] != 2 or gc[1] < 1):
+            raise DatasetError(
+                f"{where}.schema.goal_candidates", f"expected shape ({N}, G, 2), got {gc}"
+            )
         if len(fs) != 4 or fs[1] != N or fs[3] < 2:
             raise DatasetError(
                 f"{where}.schema.future", f"expected shape (M, {N}, T, nx), got {fs}"
@@ -222,12 +233,13 @@ class SceneDataset(torch.utils.data.Dataset):
         valid = raw.get("history_valid")
         if valid is None:
             valid = np.ones((n, self.history_steps), bool)
-        return {
-            "history": np.ascontiguousarray(raw["history"], np.float32),
-            "goals": np.ascontiguousarray(raw["goals"], np.float32),
-            "history_valid": np.ascontiguousarray(valid, bool),
-            "gt_states": np.ascontiguousarray(gt, np.float32),
-        }
+        out = {"history": np.ascontiguousarray(raw["history"], np.float32)}
+        for k in ("goals", "goal_candidates"):
+            if k in raw:
+                out[k] = np.ascontiguousarray(raw[k], np.float32)
+        out["history_valid"] = np.ascontiguousarray(valid, bool)
+        out["gt_states"] = np.ascontiguousarray(gt, np.float32)
+        return out
 
     def read(self, indices) -> dict[str, np.ndarray]:
         """Numpy arrays of the samples ``indices`` (any order): the batch fields but ``index``."""

@@ -5,8 +5,11 @@
 the ground truth, ``min_m 1/N sum_i mean_t ||x^m_{i,t} - x^GT_{i,t}||^2`` (the paper's
 squared norm of the trajectory difference, averaged over steps so that its scale does
 not depend on the horizon). ``L_prob`` is the cross entropy of the scene
-probabilities with that closest mode as the target. In RPI the goals are given, so
-``L_goal`` is zero. The SC baseline uses ``L_imit + L_prob`` (paper Sec. 5); the
+probabilities with that closest mode as the target. ``L_goal`` (:func:`goal_loss`, only for
+ours with a goal decoder; in RPI the goals are given and it is zero): the cross entropy of
+each agent's goal distribution with the candidate closest to its ground-truth final
+position as the target, averaged over agents (App. F.4, Eq. (class)); or, for regressed
+goals, the minSFDE-style ``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` (App. F.4, Waymo). The SC baseline uses ``L_imit + L_prob`` (paper Sec. 5); the
 marginal V-LSTM uses per-agent minADE plus a per-agent classification loss.
 
 Shapes follow :mod:`learning.metrics`: ``pos`` ``(B, M, N, T, 2)``, ``gt`` ``(B, N, T, 2)``.
@@ -19,13 +22,20 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-__all__ = ["LossWeights", "scene_loss", "marginal_loss"]
+__all__ = [
+    "LossWeights",
+    "scene_loss",
+    "marginal_loss",
+    "goal_loss",
+    "goal_classification_loss",
+    "goal_regression_loss",
+]
 
 
 @dataclass(frozen=True)
 class LossWeights:
     imitation: float = 1.0  #: lambda_1
-    goal: float = 0.1  #: lambda_2 (no goal loss in RPI: goals are given)
+    goal: float = 0.1  #: lambda_2 (used by a goal decoder; RPI gives the goals)
     probability: float = 0.1  #: lambda_3
 
 
@@ -67,3 +77,54 @@ def marginal_loss(
         imit, cls = imit_agent.mean(), ce.mean()
     total = weights.imitation * imit + weights.probability * cls
     return {"loss": total, "imitation": imit, "probability": cls}
+
+
+def _agent_mean(v: torch.Tensor, mask) -> torch.Tensor:
+    if mask is None:
+        return v.mean()
+    m = mask.to(v.dtype)
+    return (v * m).sum() / m.sum().clamp_min(1)
+
+
+def goal_classification_loss(logits, candidates, gt_final, cand_mask=None, mask=None):
+    """Cross entropy of per-agent goal logits ``(B, N, G)`` with the candidate closest to
+    the ground-truth final position ``gt_final`` ``(B, N, 2)`` as the target; mean over agents.
+
+    ``candidates`` ``(B, N, G, 2)``; masked candidates (``cand_mask`` False) are never targets.
+    """
+    d = torch.linalg.vector_norm(candidates - gt_final[:, :, None], dim=-1)  # (B, N, G)
+    if cand_mask is not None:
+        d = d.masked_fill(~cand_mask.bool(), torch.inf)
+    target = d.argmin(-1)  # (B, N)
+    ce = F.cross_entropy(
+        logits.reshape(-1, logits.shape[-1]), target.reshape(-1), reduction="none"
+    ).reshape(target.shape)
+    return _agent_mean(ce, mask)
+
+
+def goal_regression_loss(goals, gt_final, mask=None):
+    """``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` for goals ``(B, M, N, 2)``; mean over the batch."""
+    sq = ((goals - gt_final[:, None]) ** 2).sum(-1)  # (B, M, N)
+    if mask is not None:
+        m = mask[:, None].to(sq.dtype)
+        per_mode = (sq * m).sum(-1) / m.sum(-1).clamp_min(1)
+    else:
+        per_mode = sq.mean(-1)
+    return per_mode.min(dim=1).values.mean()
+
+
+def goal_loss(out: dict, gt, mask=None) -> torch.Tensor | None:
+    """The goal loss of a model output (``gt`` ``(B, N, T, 2)``), or ``None`` without a goal decoder.
+
+    An output with ``goal_logits`` gets :func:`goal_classification_loss`; one with decoded
+    ``goals`` but no logits (``"regress"``) gets :func:`goal_regression_loss`. Given goals
+    (``decoded_goals`` False or absent) have no loss.
+    """
+    if not out.get("decoded_goals", False):
+        return None
+    final = gt[:, :, -1]
+    if "goal_logits" in out:
+        return goal_classification_loss(
+            out["goal_logits"], out["goal_candidates"], final, out.get("goal_candidates_mask"), mask
+        )
+    return goal_regression_loss(out["goals"], final, mask)

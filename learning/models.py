@@ -6,7 +6,10 @@ step), ``M`` modes, ``K`` future steps. A scene batch is a dict of tensors:
 - ``history``: ``(B, H+1, N, 4)`` past states ``(x, y, v, theta)`` (only ``x, y`` are
   observed by the encoders, as in the paper; the current full state is the game's
   initial state);
-- ``goals``: ``(B, N, 2)`` goal positions (given in RPI, paper App. F.3);
+- ``goals`` (optional): ``(B, N, 2)`` goal positions (given in RPI, paper App. F.3; read
+  only by ours with ``goal_decoder="given"``);
+- ``goal_candidates`` (optional): ``(B, N, G, 2)`` candidate goal points per agent, with
+  ``goal_candidates_mask`` ``(B, N, G)`` (used by ``goal_decoder="candidates"``);
 - ``lanes`` (optional): ``(B, L, P, 2)`` lane polylines, ``lanes_mask`` ``(B, L)``.
 
 Encoders (paper App. F.1): every agent's history is a polyline of vectors
@@ -22,7 +25,11 @@ Predictors (:func:`build_model`):
   interaction-weight decoder (all agents' features), an initial-strategy decoder (per
   agent, shared) feed the differentiable game layer (:mod:`learning.layer`), which runs
   ``S`` LM steps on all ``B x M`` problems; a scene-probability decoder reads
-  ``[all agents' features, optimized states]``. Ablations: ``learned_init=False``
+  ``[all agents' features, optimized states]``. The goals of the game come from the scene
+  (``goal_decoder="given"``, RPI) or from a goal decoder (:class:`GoalDecoder`):
+  ``"candidates"`` (TNT-style categorical over candidate points, the ``M`` most likely
+  per agent become its goals in modes ``1..M``; exiD, CARLA) or ``"regress"`` (``M``
+  goals per agent regressed; Waymo). Ablations: ``learned_init=False``
   (zeros as initial strategies), ``goal_features=False`` (the goal term's weight is
   fixed to zero, so the game has no goal feature).
 - ``"sc"`` (V-LSTM + SC): the same encoder; controls are decoded directly per mode and
@@ -43,7 +50,12 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
+GOAL_DECODERS = ("given", "candidates", "regress")
+
 __all__ = [
+    "GOAL_DECODERS",
+    "GoalDecoder",
+    "goal_candidates",
     "ModelConfig",
     "build_model",
     "EPOModel",
@@ -73,6 +85,10 @@ class ModelConfig:
     learned_init: bool = True  #: ablation: False uses zeros as initial strategies
     goal_features: bool = True  #: ablation: False removes the goal term (weight 0)
     backward: str = "unrolled"  #: game layer backward mode
+    goal_decoder: str = "given"  #: ours: "given" (scene goals), "candidates" or "regress"
+    goal_rings: int = 5  #: generated candidates (no scene candidates, no lanes): rings ...
+    goal_angles: int = 12  #: ... x angles around the agent (paper: G = 60 goal points)
+    goal_range: float = 5.0  #: radius in metres of the outermost candidate ring
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm"):
@@ -80,16 +96,47 @@ class ModelConfig:
         if self.backbone not in ("vlstm", "vibes"):
             raise SpecError("model.backbone", f"expected 'vlstm' or 'vibes', got {self.backbone!r}")
         if self.backward not in ("unrolled", "implicit"):
-            raise SpecError("model.backward", f"expected 'unrolled' or 'implicit', got {self.backward!r}")
-        for k in ("modes", "hist_width", "hist_layers", "lane_width", "global_width", "heads", "dec_width", "lm_steps"):
+            raise SpecError(
+                "model.backward", f"expected 'unrolled' or 'implicit', got {self.backward!r}"
+            )
+        if self.goal_decoder not in GOAL_DECODERS:
+            raise SpecError(
+                "model.goal_decoder",
+                f"expected one of {', '.join(map(repr, GOAL_DECODERS))}, got {self.goal_decoder!r}",
+            )
+        if self.goal_decoder != "given" and self.kind != "epo":
+            raise SpecError(
+                "model.goal_decoder",
+                f"only the 'epo' model decodes goals; the {self.kind!r} model needs 'given'",
+            )
+        for k in (
+            "modes",
+            "hist_width",
+            "hist_layers",
+            "lane_width",
+            "global_width",
+            "heads",
+            "dec_width",
+            "lm_steps",
+            "goal_rings",
+            "goal_angles",
+        ):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise SpecError(f"model.{k}", f"expected an integer >= 1, got {v!r}")
         if self.global_width % self.heads:
-            raise SpecError("model.heads", f"expected a divisor of global_width {self.global_width}, got {self.heads}")
-        for k in ("step_size", "damping"):
+            raise SpecError(
+                "model.heads",
+                f"expected a divisor of global_width {self.global_width}, got {self.heads}",
+            )
+        for k in ("step_size", "damping", "goal_range"):
             v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or v == float("inf"):
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not v > 0
+                or v == float("inf")
+            ):
                 raise SpecError(f"model.{k}", f"expected a finite number > 0, got {v!r}")
         for k in ("learned_init", "goal_features"):
             if not isinstance(getattr(self, k), bool):
@@ -195,6 +242,98 @@ def rollout_torch(
     return torch.stack(xs, -2)
 
 
+def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Candidate goal points ``(B, N, G, 2)`` and their mask ``(B, N, G)`` for every agent.
+
+    In order of preference: the scene's ``goal_candidates`` (a dataset that extracts them,
+    e.g. from the centerlines of the current and neighbouring lanes as in the paper); the
+    points of the scene's lane polylines (shared by all agents, masked by ``lanes_mask``);
+    otherwise a polar grid in each agent's heading frame around its current position:
+    ``goal_rings`` rings up to ``goal_range`` metres times ``goal_angles`` directions
+    (5 x 12 = 60 points by default, the paper's ``G``).
+    """
+    hist = scene["history"]
+    B, N = hist.shape[0], hist.shape[2]
+    if "goal_candidates" in scene:
+        cand = scene["goal_candidates"].to(hist.dtype)
+        if cand.ndim != 4 or cand.shape[:2] != (B, N) or cand.shape[-1] != 2:
+            raise SpecError(
+                "goal_candidates", f"expected shape ({B}, {N}, G, 2), got {tuple(cand.shape)}"
+            )
+        mask = scene.get("goal_candidates_mask")
+        mask = torch.ones(cand.shape[:3], dtype=torch.bool) if mask is None else mask.bool()
+        return cand, mask
+    lanes = scene.get("lanes")
+    if lanes is not None:
+        Bl, L, P, _ = lanes.shape
+        cand = lanes.to(hist.dtype).reshape(B, 1, L * P, 2).expand(B, N, -1, -1)
+        lm = scene.get("lanes_mask")
+        lm = torch.ones(B, L, dtype=torch.bool) if lm is None else lm.bool()
+        mask = lm[:, :, None].expand(B, L, P).reshape(B, 1, L * P).expand(B, N, -1)
+        return cand, mask
+    cur = hist[:, -1]  # (B, N, 4): x, y, v, heading
+    R, A = cfg.goal_rings, cfg.goal_angles
+    radii = cfg.goal_range * torch.arange(1, R + 1, dtype=hist.dtype) / R
+    ang = cur[..., 3:4] + 2 * torch.pi * torch.arange(A, dtype=hist.dtype) / A  # (B, N, A)
+    dirs = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (B, N, A, 2)
+    cand = cur[:, :, None, None, :2] + radii[:, None, None] * dirs[:, :, None]  # (B, N, R, A, 2)
+    cand = cand.reshape(B, N, R * A, 2)
+    return cand, torch.ones(B, N, R * A, dtype=torch.bool)
+
+
+class GoalDecoder(nn.Module):
+    """Goal decoder ``phi_goal`` (paper Sec. 4.1, App. F.1), shared by all agents.
+
+    ``"candidates"``: a 3-layer MLP (batch norm) scores ``[z_i, candidate - position_i]``
+    for every candidate of :func:`goal_candidates`; the ``M`` most likely candidates of
+    agent ``i`` are its goals in modes ``1..M``. ``"regress"``: a 3-layer MLP (batch norm)
+    maps ``z_i`` to ``M`` goal offsets from the agent's current position.
+
+    ``forward`` returns ``goals`` ``(B, M, N, 2)`` and, for candidates, ``goal_logits``
+    ``(B, N, G)`` (masked candidates at the dtype's lowest value), ``goal_candidates``
+    ``(B, N, G, 2)`` and ``goal_candidates_mask``.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        W, w, M = cfg.global_width, cfg.dec_width, cfg.modes
+        out = 1 if cfg.goal_decoder == "candidates" else 2 * M
+        inp = W + 2 if cfg.goal_decoder == "candidates" else W
+        self.net = nn.Sequential(
+            nn.Linear(inp, w), nn.BatchNorm1d(w), nn.ReLU(),
+            nn.Linear(w, w), nn.BatchNorm1d(w), nn.ReLU(),
+            nn.Linear(w, out),
+        )  # fmt: skip
+
+    def forward(self, scene: dict, z: torch.Tensor) -> dict:
+        B, N, W = z.shape
+        M = self.cfg.modes
+        cur = scene["history"][:, -1, :, :2].to(z.dtype)  # (B, N, 2)
+        if self.cfg.goal_decoder == "regress":
+            off = self.net(z.reshape(B * N, W)).reshape(B, N, M, 2)
+            return {"goals": (cur[:, :, None] + off).permute(0, 2, 1, 3)}
+        cand, mask = goal_candidates(scene, self.cfg)
+        cand = cand.to(z.dtype)
+        G = cand.shape[2]
+        if G < M:
+            raise SpecError(
+                "goal_candidates", f"expected at least M = {M} candidates per agent, got {G}"
+            )
+        rel = cand - cur[:, :, None]
+        inp = torch.cat([z[:, :, None].expand(B, N, G, W), rel], -1).reshape(B * N * G, W + 2)
+        logits = self.net(inp).reshape(B, N, G)
+        logits = logits.masked_fill(~mask.to(logits.device), torch.finfo(logits.dtype).min)
+        top = logits.topk(M, dim=-1).indices  # (B, N, M): most likely first
+        goals = cand.gather(2, top[..., None].expand(B, N, M, 2))
+        return {
+            "goals": goals.permute(0, 2, 1, 3),
+            "goal_logits": logits,
+            "goal_candidates": cand,
+            "goal_candidates_mask": mask,
+        }
+
+
 class _Base(nn.Module):
     def __init__(self, cfg: ModelConfig, game: PotentialGame):
         super().__init__()
@@ -240,6 +379,14 @@ class EPOModel(_Base):
         if self.n_own * self.N != len(self.own_idx):
             raise ValueError("game: every agent needs the same own features")
         self.goal_w = [L[f"w.{a}.goal"].start for a in game.agent_names if f"w.{a}.goal" in L]
+        self.goal_idx = [L[f"goal.{a}"].slice for a in game.agent_names if f"goal.{a}" in L]
+        if cfg.goal_decoder != "given" and len(self.goal_idx) != self.N:
+            raise SpecError(
+                "model.goal_decoder",
+                f"the game needs a goal parameter per agent to decode goals; it has "
+                f"{len(self.goal_idx)} of {self.N}",
+            )
+        self.goal_dec = GoalDecoder(cfg) if cfg.goal_decoder != "given" else None
         W, M, w = cfg.global_width, cfg.modes, cfg.dec_width
         self.own_dec = nn.Sequential(mlp(W, w, M * self.n_own), nn.Softplus())
         self.pair_dec = nn.Sequential(
@@ -257,16 +404,36 @@ class EPOModel(_Base):
         self.layer = GameLayer(game, opts, backward=cfg.backward)
         self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
 
-    def game_params(self, scene: dict, z: torch.Tensor) -> torch.Tensor:
-        """Parameters ``(B, M, n_p)``: current states and goals from the scene, predicted weights."""
+    def decode_goals(self, scene: dict, z: torch.Tensor) -> dict:
+        """Goals ``(B, M, N, 2)`` of every mode: the scene's, or the goal decoder's (and its logits)."""
+        if self.goal_dec is not None:
+            return {**self.goal_dec(scene, z), "decoded_goals": True}
+        if not self.goal_idx:
+            return {}
+        if "goals" not in scene:
+            raise SpecError(
+                "goals",
+                "the scene has no goals; the model reads given goals (model.goal_decoder="
+                "'given'): use a dataset with goals or goal_decoder 'candidates' or 'regress'",
+            )
+        g = scene["goals"].to(z.dtype)
+        return {"goals": g[:, None].expand(g.shape[0], self.cfg.modes, -1, -1)}
+
+    def game_params(
+        self, scene: dict, z: torch.Tensor, goals: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Parameters ``(B, M, n_p)``: current states from the scene, goals ``(B, M, N, 2)``
+        (default: :meth:`decode_goals`), predicted weights."""
         B, M, N = z.shape[0], self.cfg.modes, self.N
         L = self.game.params
         p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
         cur = scene["history"][:, -1]  # (B, N, 4)
+        if goals is None and self.goal_idx:
+            goals = self.decode_goals(scene, z)["goals"]
         for i, a in enumerate(self.game.agent_names):
             p[..., L[f"x0.{a}"].slice] = cur[:, None, i].to(z.dtype)
             if f"goal.{a}" in L:
-                p[..., L[f"goal.{a}"].slice] = scene["goals"][:, None, i].to(z.dtype)
+                p[..., L[f"goal.{a}"].slice] = goals[:, :, i].to(z.dtype)
         w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
         p = p.index_copy(-1, self.own_idx.to(z.device), w_own)
@@ -278,7 +445,8 @@ class EPOModel(_Base):
     def forward(self, scene: dict) -> dict:
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
-        p = self.game_params(scene, z)
+        goal_out = self.decode_goals(scene, z)
+        p = self.game_params(scene, z, goal_out.get("goals"))
         u0 = (
             self.init_dec(z)
             .reshape(B, self.N, M, self.K * self.nu)
@@ -304,6 +472,7 @@ class EPOModel(_Base):
             "params": p,
             "init_pos": init_pos,
             "status": out.status,
+            **goal_out,
         }
 
 

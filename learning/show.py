@@ -87,14 +87,15 @@ def show_predictions(
             hist[hvalid, i, 0], hist[hvalid, i, 1], ":", color=c, lw=2, label=f"{agents[i]} history"
         )
         ax.add_patch(Circle(hist[-1, i, :2], game.agents[i].radius, fc="none", ec=c, lw=1.5))
-        ax.plot(
-            *batch["goals"][0, i].numpy(),
-            "*",
-            color=c,
-            ms=15,
-            mec="white",
-            label=f"{agents[i]} goal",
-        )
+        if "goals" in batch:
+            ax.plot(
+                *batch["goals"][0, i].numpy(),
+                "*",
+                color=c,
+                ms=15,
+                mec="white",
+                label=f"{agents[i]} goal",
+            )
     fut, valid = raw["future"], raw.get("mode_valid", np.ones(raw["future"].shape[0], bool))
     gt_mode = int(raw["gt_mode"]) if "gt_mode" in raw else 0
     for m in range(fut.shape[0]):
@@ -115,6 +116,20 @@ def show_predictions(
         ax.plot(
             xy[:, 0], xy[:, 1], "--", color="0.15", lw=2.5, label="ground truth" if i == 0 else None
         )
+    given_goals = batch["goals"][0].numpy() if "goals" in batch else None
+    decoded = None
+    if isinstance(out, dict) and out.get("decoded_goals", False):  # a goal decoder's goals
+        decoded = out["goals"][0].detach().numpy()  # (M, N, 2)
+        for m in range(M):
+            ax.plot(
+                decoded[m, :, 0],
+                decoded[m, :, 1],
+                "P",
+                color=MODE_COLORS[m % len(MODE_COLORS)],
+                ms=11,
+                mec="k",
+                label=f"mode {m} decoded goals",
+            )
     order = np.argsort(-probs)
     for rank, m in enumerate(order):
         c = MODE_COLORS[m % len(MODE_COLORS)]
@@ -138,8 +153,8 @@ def show_predictions(
             hist[..., :2].reshape(-1, 2),
             gt.reshape(-1, 2),
             pos.reshape(-1, 2),
-            batch["goals"][0].numpy().reshape(-1, 2),
         ]
+        + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
     )
     lo, hi = pts.min(0), pts.max(0)
     mid, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1.0) + 0.5

@@ -48,10 +48,10 @@ from pathlib import Path
 import torch
 
 from epo_casadi.errors import EpoError, SpecError
-from scenarios.dataset import fsync_replace
+from scenarios.dataset import MANIFEST, DatasetError, fsync_replace
 
 from .data import SceneDataset, game_summary
-from .losses import LossWeights, marginal_loss, scene_loss
+from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
 from .models import ModelConfig, build_model, count_parameters
 
 __all__ = [
@@ -262,10 +262,31 @@ def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
 def compute_loss(
     kind: str, out: dict, gt: torch.Tensor, weights: LossWeights
 ) -> dict[str, torch.Tensor]:
-    """The training loss of a model's output: scene loss (ours, SC) or marginal loss (V-LSTM)."""
+    """The training loss of a model's output: scene loss (ours, SC) or marginal loss (V-LSTM),
+    plus ``weights.goal`` times the goal loss when the model decodes goals (part ``goal``,
+    zero otherwise)."""
     if kind == "vlstm":
-        return marginal_loss(out["pos"], out["marginal_logits"], gt, weights)
-    return scene_loss(out["pos"], out["logits"], gt, weights)
+        parts = marginal_loss(out["pos"], out["marginal_logits"], gt, weights)
+    else:
+        parts = scene_loss(out["pos"], out["logits"], gt, weights)
+    g = goal_loss(out, gt)
+    if g is None:
+        parts["goal"] = torch.zeros((), dtype=parts["loss"].dtype)
+    else:
+        parts["goal"] = g
+        parts["loss"] = parts["loss"] + weights.goal * g
+    return parts
+
+
+def _zero_sums() -> dict:
+    return {
+        "loss": 0.0,
+        "imitation": 0.0,
+        "probability": 0.0,
+        "goal": 0.0,
+        "samples": 0,
+        "seconds": 0.0,
+    }
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
@@ -290,7 +311,10 @@ def plot_history(rows: list[dict], out_png: str | os.PathLike, title: str = "") 
     FigureCanvasAgg(fig)
     a1, a2 = fig.subplots(1, 2)
     ep = [r["epoch"] for r in rows]
-    for k, style in (("train_loss", "-o"), ("train_imitation", "--"), ("train_probability", ":")):
+    parts = [("train_loss", "-o"), ("train_imitation", "--"), ("train_probability", ":")]
+    if all(r.get("train_goal", 0) > 0 for r in rows):  # a goal decoder's loss
+        parts.append(("train_goal", "-."))
+    for k, style in parts:
         a1.plot(ep, [r[k] for r in rows], style, label=k.replace("train_", ""))
     a1.set_yscale("log")
     a1.set_xlabel("epoch")
@@ -382,6 +406,15 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
     if len(train_ds) == 0:
         raise SpecError("data", f"{data_dir}: the train split has no samples")
     game = train_ds.game
+    m = cfg.model
+    has_goal_param = any(f"goal.{a}" in game.params for a in game.agent_names)
+    if kind == "epo" and m.goal_decoder == "given" and has_goal_param:
+        if "goals" not in train_ds.fields:
+            raise DatasetError(
+                f"{Path(data_dir) / MANIFEST}.schema.goals",
+                "missing; the model reads given goals (model.goal_decoder='given'): "
+                "use --set goal_decoder=candidates or --set goal_decoder=regress",
+            )
     val_ds = None
     if cfg.val_split is not None:
         val_ds = SceneDataset(data_dir, cfg.val_split)
@@ -418,7 +451,7 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     history: list[dict] = []
     epoch, step, start_batch = 0, 0, 0
-    sums = {"loss": 0.0, "imitation": 0.0, "probability": 0.0, "samples": 0, "seconds": 0.0}
+    sums = _zero_sums()
     best = math.inf
     if state is not None:
         try:
@@ -511,8 +544,8 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 opt.step()
                 step += 1
                 vals = {k: v.item() for k, v in parts.items()}
-                for k in ("loss", "imitation", "probability"):
-                    sums[k] += vals[k] * n
+                for k in ("loss", "imitation", "probability", "goal"):
+                    sums[k] = sums.get(k, 0.0) + vals[k] * n
                 sums["samples"] += n
                 sums["seconds"] = time.perf_counter() - t0
                 step_losses.append((step, vals["loss"]))
@@ -543,6 +576,7 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 "train_loss": sums["loss"] / ns,
                 "train_imitation": sums["imitation"] / ns,
                 "train_probability": sums["probability"] / ns,
+                "train_goal": sums.get("goal", 0.0) / ns,
             }
             if val_ds is not None:
                 from .evaluate import evaluate_model
@@ -556,7 +590,7 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
             history.append(row)
             epoch += 1
             start_batch = 0
-            sums = {"loss": 0.0, "imitation": 0.0, "probability": 0.0, "samples": 0, "seconds": 0.0}
+            sums = _zero_sums()
             score = row["val_minSADE"]
             improved = val_ds is None or score < best
             if improved and val_ds is not None:
