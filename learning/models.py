@@ -261,24 +261,31 @@ def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.
                 "goal_candidates", f"expected shape ({B}, {N}, G, 2), got {tuple(cand.shape)}"
             )
         mask = scene.get("goal_candidates_mask")
-        mask = torch.ones(cand.shape[:3], dtype=torch.bool) if mask is None else mask.bool()
+        mask = (
+            torch.ones(cand.shape[:3], dtype=torch.bool, device=cand.device)
+            if mask is None
+            else mask.bool()
+        )
         return cand, mask
     lanes = scene.get("lanes")
     if lanes is not None:
         Bl, L, P, _ = lanes.shape
         cand = lanes.to(hist.dtype).reshape(B, 1, L * P, 2).expand(B, N, -1, -1)
         lm = scene.get("lanes_mask")
-        lm = torch.ones(B, L, dtype=torch.bool) if lm is None else lm.bool()
+        lm = torch.ones(B, L, dtype=torch.bool, device=lanes.device) if lm is None else lm.bool()
         mask = lm[:, :, None].expand(B, L, P).reshape(B, 1, L * P).expand(B, N, -1)
         return cand, mask
     cur = hist[:, -1]  # (B, N, 4): x, y, v, heading
     R, A = cfg.goal_rings, cfg.goal_angles
-    radii = cfg.goal_range * torch.arange(1, R + 1, dtype=hist.dtype) / R
-    ang = cur[..., 3:4] + 2 * torch.pi * torch.arange(A, dtype=hist.dtype) / A  # (B, N, A)
+    dev = hist.device
+    radii = cfg.goal_range * torch.arange(1, R + 1, dtype=hist.dtype, device=dev) / R
+    ang = (
+        cur[..., 3:4] + 2 * torch.pi * torch.arange(A, dtype=hist.dtype, device=dev) / A
+    )  # (B, N, A)
     dirs = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # (B, N, A, 2)
     cand = cur[:, :, None, None, :2] + radii[:, None, None] * dirs[:, :, None]  # (B, N, R, A, 2)
     cand = cand.reshape(B, N, R * A, 2)
-    return cand, torch.ones(B, N, R * A, dtype=torch.bool)
+    return cand, torch.ones(B, N, R * A, dtype=torch.bool, device=dev)
 
 
 class GoalDecoder(nn.Module):
