@@ -102,7 +102,7 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     "overrides",
     multiple=True,
     metavar="KEY=VALUE",
-    help="Another ModelConfig field, e.g. --set hist_width=32 (repeatable).",
+    help="Another ModelConfig field, e.g. --set hist_width=32, --set goal_decoder=candidates, --set learned_init=false (repeatable).",
 )
 @click.option(
     "--checkpoint-steps",
