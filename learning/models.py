@@ -269,7 +269,7 @@ def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.
         return cand, mask
     lanes = scene.get("lanes")
     if lanes is not None:
-        Bl, L, P, _ = lanes.shape
+        L, P = lanes.shape[1:3]
         cand = lanes.to(hist.dtype).reshape(B, 1, L * P, 2).expand(B, N, -1, -1)
         lm = scene.get("lanes_mask")
         lm = torch.ones(B, L, dtype=torch.bool, device=lanes.device) if lm is None else lm.bool()
