@@ -98,7 +98,12 @@ def evaluate_model(
 
 
 def method_label(cfg: ModelConfig | None) -> str:
-    """Table label of a model: ``V-LSTM + Ours``, ``V-LSTM + SC``, ``V-LSTM``; ``CV`` for None."""
+    """Table label of a model: ``V-LSTM + Ours``, ``V-LSTM + SC``, ``V-LSTM``; ``CV`` for None.
+
+    Runs with one label are one table row, so every setting that makes ours another method
+    is in it: the ablations, another number of LM steps than the paper's 2, decoded goals,
+    the implicit backward pass.
+    """
     if cfg is None:
         return "CV"
     b = BACKBONES.get(cfg.backbone, cfg.backbone)
@@ -108,6 +113,12 @@ def method_label(cfg: ModelConfig | None) -> str:
             label += " (zero init)"
         if not cfg.goal_features:
             label += " (no goal)"
+        if cfg.lm_steps != ModelConfig.lm_steps:
+            label += f" (S = {cfg.lm_steps})"
+        if cfg.goal_decoder != "given":
+            label += f" (goals: {cfg.goal_decoder})"
+        if cfg.backward != "unrolled":
+            label += f" ({cfg.backward})"
     return label
 
 

@@ -110,6 +110,11 @@ def test_method_labels():
         == "V-LSTM + Ours (zero init) (no goal)"
     )
     assert method_label(None) == "CV"
+    assert (
+        method_label(ModelConfig(kind="epo", lm_steps=10, goal_decoder="candidates"))
+        == "V-LSTM + Ours (S = 10) (goals: candidates)"
+    )
+    assert method_label(ModelConfig(kind="epo", backward="implicit")) == "V-LSTM + Ours (implicit)"
 
 
 @pytest.fixture(scope="module")
