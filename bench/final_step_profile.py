@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from learning.data import SceneDataset
+from learning.evaluate import predict
 from learning.layer import GameLayer
-from learning.metrics import marginal_to_joint
+from learning.metrics import marginal_to_joint, min_sade, min_sfde
 from learning.train import load_model
 from solvers.lm import LMOptions
 
@@ -33,8 +34,7 @@ def profile(pos: torch.Tensor, gt: torch.Tensor, tag: str) -> None:
     err = torch.linalg.vector_norm(pos - gt[:, None], dim=-1)  # (B, M, N, T)
     best = err.mean((-1, -2)).argmin(1)
     e = err[torch.arange(len(best)), best].mean((0, 1))
-    sade = err.mean((-1, -2)).min(1).values.mean()
-    sfde = err[..., -1].mean(-1).min(1).values.mean()
+    sade, sfde = min_sade(pos, gt).mean(), min_sfde(pos, gt).mean()
     steps = " ".join(f"{v:.3f}" for v in e[STEPS].tolist())
     print(f"{tag:<34} minSADE {sade:.3f} minSFDE {sfde:.3f} | steps 10 20 30 38 39 40: {steps}")
 
@@ -55,19 +55,16 @@ def main() -> None:
     for run in a.runs:
         model, cfg, _ = load_model(run, game, which="last")
         with torch.no_grad():
-            out = model(batch)
-        pos = out["pos"]
-        if "marginal_logits" in out:
-            pos, _ = marginal_to_joint(pos, torch.softmax(out["marginal_logits"], -1))
+            pos, probs, out = predict(model, batch)
+        if probs.ndim == 3:  # marginal model: joint scenes as the evaluation builds them
+            pos, _ = marginal_to_joint(pos, probs)
         profile(pos, gt, run)
         if not a.resolve or cfg.model.kind != "epo":
             continue
         with torch.no_grad():
             z = model.encoder(batch)
             B, M, N, K, nu = z.shape[0], cfg.model.modes, model.N, model.K, model.nu
-            u0 = model.init_dec(z).reshape(B, N, M, K * nu).permute(0, 2, 1, 3).reshape(B, M, -1)
-            if not cfg.model.learned_init:
-                u0 = torch.zeros_like(u0)
+            u0 = model.initial_strategies(z)
             p = out["params"].double()
             m = cfg.model
             for S in (2, 5, 20, 100):

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .metrics import agent_mean
+
 __all__ = [
     "LossWeights",
     "scene_loss",
@@ -39,16 +41,20 @@ class LossWeights:
     probability: float = 0.1  #: lambda_3
 
 
+def _masked_mean(v: torch.Tensor, mask) -> torch.Tensor:
+    """Mean of per-agent values ``v`` ``(B, N)`` over the batch and the agents of ``mask``."""
+    if mask is None:
+        return v.mean()
+    m = mask.to(v.dtype)
+    return (v * m).sum() / m.sum().clamp_min(1)
+
+
 def scene_loss(
     pos, logits, gt, weights: LossWeights = LossWeights(), mask=None
 ) -> dict[str, torch.Tensor]:
     """Joint (scene-level) loss; returns the total and its parts (means over the batch)."""
     sq = ((pos - gt[:, None]) ** 2).sum(-1).mean(-1)  # (B, M, N)
-    if mask is not None:
-        m = mask[:, None].to(sq.dtype)
-        per_mode = (sq * m).sum(-1) / m.sum(-1).clamp_min(1)
-    else:
-        per_mode = sq.mean(-1)  # (B, M)
+    per_mode = agent_mean(sq, mask)  # (B, M)
     best = per_mode.argmin(dim=1)
     imit = per_mode.gather(1, best[:, None]).mean()
     prob = F.cross_entropy(logits, best)
@@ -69,21 +75,9 @@ def marginal_loss(
     ce = F.cross_entropy(
         logits.reshape(-1, logits.shape[-1]), best.reshape(-1), reduction="none"
     ).reshape(best.shape)
-    if mask is not None:
-        m = mask.to(ade.dtype)
-        imit = (imit_agent * m).sum() / m.sum().clamp_min(1)
-        cls = (ce * m).sum() / m.sum().clamp_min(1)
-    else:
-        imit, cls = imit_agent.mean(), ce.mean()
+    imit, cls = _masked_mean(imit_agent, mask), _masked_mean(ce, mask)
     total = weights.imitation * imit + weights.probability * cls
     return {"loss": total, "imitation": imit, "probability": cls}
-
-
-def _agent_mean(v: torch.Tensor, mask) -> torch.Tensor:
-    if mask is None:
-        return v.mean()
-    m = mask.to(v.dtype)
-    return (v * m).sum() / m.sum().clamp_min(1)
 
 
 def goal_classification_loss(logits, candidates, gt_final, cand_mask=None, mask=None):
@@ -99,18 +93,13 @@ def goal_classification_loss(logits, candidates, gt_final, cand_mask=None, mask=
     ce = F.cross_entropy(
         logits.reshape(-1, logits.shape[-1]), target.reshape(-1), reduction="none"
     ).reshape(target.shape)
-    return _agent_mean(ce, mask)
+    return _masked_mean(ce, mask)
 
 
 def goal_regression_loss(goals, gt_final, mask=None):
     """``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` for goals ``(B, M, N, 2)``; mean over the batch."""
     sq = ((goals - gt_final[:, None]) ** 2).sum(-1)  # (B, M, N)
-    if mask is not None:
-        m = mask[:, None].to(sq.dtype)
-        per_mode = (sq * m).sum(-1) / m.sum(-1).clamp_min(1)
-    else:
-        per_mode = sq.mean(-1)
-    return per_mode.min(dim=1).values.mean()
+    return agent_mean(sq, mask).min(dim=1).values.mean()
 
 
 def goal_loss(out: dict, gt, mask=None) -> torch.Tensor | None:

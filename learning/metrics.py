@@ -66,8 +66,11 @@ def _dist(pred, gt):
     return torch.linalg.vector_norm(pred - gt.unsqueeze(1), dim=-1)  # (B, M, N, T)
 
 
-def _agent_mean(v, mask):
-    """Mean over agents of ``v`` (..., N) counting only masked agents."""
+def agent_mean(v, mask=None):
+    """Mean over agents (the last axis) of ``v`` ``(B, ..., N)``, counting only the agents
+    of ``mask`` ``(B, N)`` (all agents without a mask)."""
+    if mask is None:
+        return v.mean(-1)
     m = mask.to(v.dtype)
     while m.ndim < v.ndim:
         m = m.unsqueeze(1)
@@ -77,23 +80,23 @@ def _agent_mean(v, mask):
 def min_ade(pred, gt, mask=None) -> torch.Tensor:
     pred, gt, mask = _check(pred, gt, mask)
     per_agent = _dist(pred, gt).mean(-1).min(dim=1).values  # (B, N)
-    return _agent_mean(per_agent, mask)
+    return agent_mean(per_agent, mask)
 
 
 def min_fde(pred, gt, mask=None) -> torch.Tensor:
     pred, gt, mask = _check(pred, gt, mask)
     per_agent = _dist(pred, gt)[..., -1].min(dim=1).values
-    return _agent_mean(per_agent, mask)
+    return agent_mean(per_agent, mask)
 
 
 def min_sade(pred, gt, mask=None) -> torch.Tensor:
     pred, gt, mask = _check(pred, gt, mask)
-    return _agent_mean(_dist(pred, gt).mean(-1), mask).min(dim=1).values
+    return agent_mean(_dist(pred, gt).mean(-1), mask).min(dim=1).values
 
 
 def min_sfde(pred, gt, mask=None) -> torch.Tensor:
     pred, gt, mask = _check(pred, gt, mask)
-    return _agent_mean(_dist(pred, gt)[..., -1], mask).min(dim=1).values
+    return agent_mean(_dist(pred, gt)[..., -1], mask).min(dim=1).values
 
 
 def overlap_rate(pred, probs, radii, mask=None) -> torch.Tensor:

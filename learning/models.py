@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
@@ -121,26 +121,16 @@ class ModelConfig:
             "goal_rings",
             "goal_angles",
         ):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise SpecError(f"model.{k}", f"expected an integer >= 1, got {v!r}")
+            check_number(f"model.{k}", getattr(self, k), lo=1, integer=True)
         if self.global_width % self.heads:
             raise SpecError(
                 "model.heads",
                 f"expected a divisor of global_width {self.global_width}, got {self.heads}",
             )
         for k in ("step_size", "damping", "goal_range"):
-            v = getattr(self, k)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not v > 0
-                or v == float("inf")
-            ):
-                raise SpecError(f"model.{k}", f"expected a finite number > 0, got {v!r}")
+            check_number(f"model.{k}", getattr(self, k), lo=0, lo_open=True)
         for k in ("learned_init", "goal_features"):
-            if not isinstance(getattr(self, k), bool):
-                raise SpecError(f"model.{k}", f"expected true or false, got {getattr(self, k)!r}")
+            check_bool(f"model.{k}", getattr(self, k))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -449,19 +439,24 @@ class EPOModel(_Base):
             p[..., self.goal_w] = 0.0
         return p
 
-    def forward(self, scene: dict) -> dict:
-        z = self.encoder(scene)
+    def initial_strategies(self, z: torch.Tensor) -> torch.Tensor:
+        """Initial strategies ``U_init`` ``(B, M, N * K * nu)`` of the layer from agent features
+        ``z`` ``(B, N, W)`` (zeros for the ``learned_init=False`` ablation)."""
         B, M = z.shape[0], self.cfg.modes
-        goal_out = self.decode_goals(scene, z)
-        p = self.game_params(scene, z, goal_out.get("goals"))
         u0 = (
             self.init_dec(z)
             .reshape(B, self.N, M, self.K * self.nu)
             .permute(0, 2, 1, 3)
             .reshape(B, M, -1)
         )
-        if not self.cfg.learned_init:
-            u0 = torch.zeros_like(u0)
+        return u0 if self.cfg.learned_init else torch.zeros_like(u0)
+
+    def forward(self, scene: dict) -> dict:
+        z = self.encoder(scene)
+        B, M = z.shape[0], self.cfg.modes
+        goal_out = self.decode_goals(scene, z)
+        p = self.game_params(scene, z, goal_out.get("goals"))
+        u0 = self.initial_strategies(z)
         out = self.layer(p.double(), u0.double())
         x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0
         pos = x[..., :2]
