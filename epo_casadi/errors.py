@@ -3,8 +3,24 @@
 from __future__ import annotations
 
 import math
+import reprlib
 
-__all__ = ["EpoError", "SpecError", "check_number", "check_bool"]
+__all__ = ["EpoError", "SpecError", "OutputError", "check_number", "check_bool", "short_repr"]
+
+#: Longest message a :class:`SpecError` carries; longer ones are cut (a whole YAML structure
+#: in a message would cost minutes to build and print).
+MAX_MESSAGE = 2000
+
+_repr = reprlib.Repr()
+_repr.maxlevel, _repr.maxlist, _repr.maxdict, _repr.maxtuple = 3, 8, 6, 8
+_repr.maxstring, _repr.maxother, _repr.maxlong = 60, 60, 40
+
+
+def short_repr(value, limit: int = 80) -> str:
+    """``repr(value)`` with bounded cost and length: nested containers are elided
+    (``reprlib``), never walked in full, and the text is cut at ``limit`` characters."""
+    s = _repr.repr(value)
+    return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
 class EpoError(Exception):
@@ -19,9 +35,28 @@ class SpecError(EpoError, ValueError):
     """
 
     def __init__(self, field: str, message: str):
+        field, message = str(field)[:200], str(message)
+        if len(message) > MAX_MESSAGE:
+            message = message[: MAX_MESSAGE - 3] + "..."
         self.field = field
         self.message = message
         super().__init__(f"{field}: {message}")
+
+
+class OutputError(EpoError, OSError):
+    """An output file or folder could not be written (a path through a file, a full disk).
+
+    ``path`` is the file that was to be written; nothing is left at ``path`` or beside it
+    (writers write a temporary file and rename it into place).
+    """
+
+    def __init__(self, path, reason: str):
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{path}: cannot write: {reason}")
+
+    def __str__(self) -> str:
+        return f"{self.path}: cannot write: {self.reason}"
 
 
 def check_number(
@@ -49,12 +84,12 @@ def check_number(
             rng = f" <= {hi}"
         else:
             rng = ""
-        raise SpecError(field, f"expected {kind}{rng}, got {value!r}")
+        raise SpecError(field, f"expected {kind}{rng}, got {short_repr(value)}")
     return value
 
 
 def check_bool(field: str, value) -> bool:
     """Return ``value`` if it is ``True`` or ``False``, else raise :class:`SpecError`."""
     if not isinstance(value, bool):
-        raise SpecError(field, f"expected True or False, got {value!r}")
+        raise SpecError(field, f"expected True or False, got {short_repr(value)}")
     return value

@@ -44,7 +44,7 @@ from typing import Any, ClassVar
 import casadi as ca
 
 from .dynamics import Dynamics
-from .errors import SpecError
+from .errors import SpecError, short_repr
 
 __all__ = [
     "AgentContext",
@@ -123,7 +123,11 @@ class Feature:
         """Raise :class:`SpecError` when the feature does not apply to ``dynamics``."""
         w = self.weight
         if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w):
-            raise SpecError(f"{self.key}.weight", f"expected a finite number, got {w!r}")
+            raise SpecError(f"{self.key}.weight", f"expected a finite number, got {short_repr(w)}")
+        if w < 0:  # the rule of the game layer (learning.layer), said the same way
+            raise SpecError(
+                f"{self.key}.weight", f"expected a number >= 0 (weights must be >= 0), got {w:g}"
+            )
         x = ca.SX.sym("x", dynamics.nx, 3)
         u = ca.SX.sym("u", dynamics.nu, 2)
         refs = {n: ca.SX.sym(n, s) for n, s in self.refs().items()}
@@ -253,7 +257,8 @@ class Path(Feature):
     def __post_init__(self):
         if self.points is not None and not (isinstance(self.points, int) and self.points >= 2):
             raise SpecError(
-                "path.points", f"a polyline needs an integer >= 2 points, got {self.points!r}"
+                "path.points",
+                f"a polyline needs an integer >= 2 points, got {short_repr(self.points)}",
             )
 
     def refs(self):
@@ -375,10 +380,19 @@ class Collision(PairFeature):
 
     def __post_init__(self):
         if not (isinstance(self.every, int) and self.every >= 1):
-            raise SpecError("collision.every", f"expected an integer >= 1, got {self.every!r}")
+            raise SpecError(
+                "collision.every", f"expected an integer >= 1, got {short_repr(self.every)}"
+            )
+        w = self.weight
+        if isinstance(w, (int, float)) and not isinstance(w, bool) and w < 0:
+            raise SpecError(
+                "collision.weight", f"expected a number >= 0 (weights must be >= 0), got {w:g}"
+            )
         m = self.margin
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or m < 0:
-            raise SpecError("collision.margin", f"expected a finite distance >= 0 (m), got {m!r}")
+            raise SpecError(
+                "collision.margin", f"expected a finite distance >= 0 (m), got {short_repr(m)}"
+            )
 
     def steps(self, K):
         return list(range(self.every, K + 1, self.every))
@@ -417,11 +431,14 @@ def _construct(registry: dict, spec: Any, where: str):
     if isinstance(spec, str):
         spec = {"type": spec}
     if not isinstance(spec, dict) or "type" not in spec:
-        raise SpecError(where, f"expected a feature name or a mapping with 'type', got {spec!r}")
+        raise SpecError(
+            where, f"expected a feature name or a mapping with 'type', got {short_repr(spec)}"
+        )
     kind = spec["type"]
     if kind not in registry:
         raise SpecError(
-            f"{where}.type", f"unknown feature {kind!r}; expected one of {sorted(registry)}"
+            f"{where}.type",
+            f"unknown feature {short_repr(kind)}; expected one of {sorted(registry)}",
         )
     cls = registry[kind]
     names = {f.name for f in fields(cls)}

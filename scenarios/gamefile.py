@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from epo_casadi.dynamics import DoubleIntegrator, KinematicBicycle, Unicycle, make_dynamics
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.features import OWN_FEATURES, PAIR_FEATURES, Feature, PairFeature
 from epo_casadi.features import Path as PathFeature
 from epo_casadi.game import AgentSpec, GameSpec, PotentialGame
@@ -69,9 +69,20 @@ EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 EXAMPLES = ("crossing2", "robot_pedestrian", "intersection4", "highway_merge")
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
+#: Largest horizon a game file may ask for: the symbolic build and every solver's memory
+#: grow linearly with K (K = 2000: 4 s and 0.1 GB to build crossing2); 10^12 would end in
+#: an allocation failure deep inside CasADi instead of this message.
+MAX_HORIZON = 10_000
+#: Largest number of values (numbers, strings, lists, mappings) a game file may expand to,
+#: counting every repetition of a YAML alias: a few aliases can otherwise stand for
+#: billions of values and hang the loader.
+MAX_VALUES = 1_000_000
 _TOP_KEYS = ("horizon", "dt", "agents", "pair_features", "solver")
 _AGENT_KEYS = ("name", "dynamics", "radius", "x0", "goal", "vref", "path", "features")
 _SOLVERS = ("lm", "ipopt")
+#: the rule on weights that the game layer (learning.layer.GameLayer) enforces, said the
+#: same way wherever a weight enters: game files, --set, the feature objects
+WEIGHT_RULE = " (weights must be >= 0)"
 _DYNAMICS = {c.name: c for c in (Unicycle, DoubleIntegrator, KinematicBicycle)}
 
 
@@ -79,7 +90,9 @@ def example_path(name: str) -> Path:
     """Path of a shipped example file, by name (``"crossing2"``) or file name."""
     stem = name[:-5] if name.endswith(".yaml") else name
     if stem not in EXAMPLES:
-        raise SpecError("example", f"unknown example {name!r}; expected one of {list(EXAMPLES)}")
+        raise SpecError(
+            "example", f"unknown example {short_repr(name)}; expected one of {list(EXAMPLES)}"
+        )
     return EXAMPLES_DIR / f"{stem}.yaml"
 
 
@@ -109,7 +122,7 @@ class GameFile:
     def options(self, solver: str, **overrides) -> Any:
         """The options object of ``solver`` (``"lm"`` or ``"ipopt"``): file values, then ``overrides``."""
         if solver not in _SOLVERS:
-            raise SpecError("solver", f"expected one of {list(_SOLVERS)}, got {solver!r}")
+            raise SpecError("solver", f"expected one of {list(_SOLVERS)}, got {short_repr(solver)}")
         values = {**self.solver_options.get(solver, {}), **overrides}
         return _options_object(solver, values, f"solver.{solver}")
 
@@ -162,8 +175,15 @@ def parse_game(data: Any, source: str | Path | None = None) -> GameFile:
         raise SpecError(
             where, f"expected a mapping with 'horizon', 'dt' and 'agents', got {_tname(data)}"
         )
+    _check_size(data, Path(source).name if source is not None else "game")
     _keys(data, "", _TOP_KEYS, required=("horizon", "dt", "agents"))
-    horizon = _integer(data["horizon"], "horizon", minimum=1)
+    horizon = _integer(
+        data["horizon"],
+        "horizon",
+        minimum=1,
+        maximum=MAX_HORIZON,
+        note=" (the symbolic build and the solvers' memory grow with the horizon)",
+    )
     dt = _number(data["dt"], "dt", positive=True)
     agents_raw = data["agents"]
     if not isinstance(agents_raw, list) or not agents_raw:
@@ -185,6 +205,12 @@ def parse_game(data: Any, source: str | Path | None = None) -> GameFile:
     pair_features, keys = [], set()
     for n, pf in enumerate(pfs_raw):
         obj = _feature(pf, f"pair_features[{n}]", PAIR_FEATURES, names=names)
+        every = getattr(obj, "every", None)
+        if every is not None and every > horizon:
+            raise SpecError(
+                f"pair_features[{n}].every",
+                f"expected an integer <= horizon ({horizon}): every {every} checks no step at all",
+            )
         if obj.key in keys:
             raise SpecError(
                 f"pair_features[{n}]", f"duplicate pair feature {obj.key!r}; give one a 'label'"
@@ -211,7 +237,7 @@ def _agent(a: Any, where: str) -> AgentSpec:
     name = a["name"]
     if not isinstance(name, str) or not _NAME_RE.match(name):
         raise SpecError(
-            f"{where}.name", f"expected a name of letters, digits and '_', got {name!r}"
+            f"{where}.name", f"expected a name of letters, digits and '_', got {short_repr(name)}"
         )
     dyn = _dynamics(a["dynamics"], f"{where}.dynamics")
     radius = _number(a.get("radius", 0.25), f"{where}.radius", minimum=0.0, unit=" (metres)")
@@ -268,7 +294,8 @@ def _dynamics(d: Any, where: str):
     kind = d["type"]
     if not isinstance(kind, str) or kind not in _DYNAMICS:
         raise SpecError(
-            f"{where}.type", f"unknown dynamics {kind!r}; expected one of {sorted(_DYNAMICS)}"
+            f"{where}.type",
+            f"unknown dynamics {short_repr(kind)}; expected one of {sorted(_DYNAMICS)}",
         )
     cls = _DYNAMICS[kind]
     options = [f.name for f in fields(cls) if f.name not in ("state_names", "control_names")]
@@ -289,7 +316,8 @@ def _feature(
     kind = f["type"]
     if not isinstance(kind, str) or kind not in registry:
         raise SpecError(
-            f"{where}.type", f"unknown feature {kind!r}; expected one of {sorted(registry)}"
+            f"{where}.type",
+            f"unknown feature {short_repr(kind)}; expected one of {sorted(registry)}",
         )
     cls = registry[kind]
     allowed = ("type", *[fl.name for fl in fields(cls)])
@@ -300,10 +328,12 @@ def _feature(
         if key == "type":
             continue
         if key == "weight":
-            opts[key] = _number(v, fw)
+            opts[key] = _number(v, fw, minimum=0.0, unit=WEIGHT_RULE)
         elif key == "label":
             if v is not None and (not isinstance(v, str) or not _NAME_RE.match(v)):
-                raise SpecError(fw, f"expected a label of letters, digits and '_', got {v!r}")
+                raise SpecError(
+                    fw, f"expected a label of letters, digits and '_', got {short_repr(v)}"
+                )
             opts[key] = v
         elif key in ("lower", "upper"):
             if v is not None:
@@ -404,9 +434,11 @@ def _options_object(solver: str, values: dict, where: str):
     else:
         from solvers.ipopt import IpoptOptions as cls
     names = [f.name for f in fields(cls)]
-    unknown = sorted(set(values) - set(names))
+    unknown = sorted(set(values) - set(names), key=str)
     if unknown:
-        raise SpecError(f"{where}.{unknown[0]}", f"unknown option; allowed: {sorted(names)}")
+        raise SpecError(
+            f"{where}.{_keyname(unknown[0])}", f"unknown option; allowed: {sorted(names)}"
+        )
     try:
         return cls(**values)
     except SpecError as e:  # "lm.steps" -> "solver.lm.steps"
@@ -414,6 +446,64 @@ def _options_object(solver: str, values: dict, where: str):
         raise SpecError(f"{where}.{tail}" if tail != solver else where, e.message) from None
     except (TypeError, ValueError) as e:
         raise SpecError(where, str(e)) from None
+
+
+def _check_size(data: Any, where: str, limit: int | None = None) -> None:
+    """Refuse data that expands to more than ``limit`` values (default :data:`MAX_VALUES`).
+
+    YAML aliases make one list stand for many: the count is the expanded one, computed in
+    time linear in the *distinct* nodes (each shared node is counted once and remembered),
+    so a bomb is measured without being walked. A structure that contains itself is
+    refused too. The error names the smallest entry that is too large.
+    """
+    limit = MAX_VALUES if limit is None else limit
+    memo: dict[int, int] = {}
+    open_: set[int] = set()
+
+    def children(x):
+        return list(x.values()) if isinstance(x, Mapping) else list(x)
+
+    def size(x, at: str) -> int:
+        if not isinstance(x, (Mapping, list)):
+            return 1
+        i = id(x)
+        if i in memo:
+            return memo[i]
+        if i in open_:
+            raise SpecError(at or where, "a YAML alias refers to a structure that contains it")
+        open_.add(i)
+        n = 1
+        items = x.items() if isinstance(x, Mapping) else enumerate(x)
+        for k, c in items:
+            n += size(c, _child(at, k))
+            if n > limit:
+                break  # no need to count further
+        open_.discard(i)
+        memo[i] = n
+        return n
+
+    def _child(at: str, k) -> str:
+        return f"{at}[{k}]" if isinstance(k, int) else (f"{at}.{k}" if at else str(k))
+
+    try:
+        total = size(data, "")
+    except RecursionError:
+        raise SpecError(where, "nested too deeply; expected a game file") from None
+    if total <= limit:
+        return
+    at, x = "", data  # descend to the smallest entry that is still too large
+    while isinstance(x, (Mapping, list)):
+        items = x.items() if isinstance(x, Mapping) else enumerate(x)
+        big = [(k, c) for k, c in items if size(c, "") > limit]
+        if not big:
+            break
+        k, x = big[0]
+        at = _child(at, k)
+    raise SpecError(
+        at or where,
+        f"expands to more than {limit} values (YAML aliases repeating a structure?); "
+        "a game file holds far fewer",
+    )
 
 
 def _check_finite(v: Any, where: str) -> None:
@@ -441,15 +531,19 @@ def _tname(v: Any) -> str:
 
 
 def _short(v: Any) -> str:
-    s = repr(v)
-    return s if len(s) <= 60 else s[:57] + "..."
+    return short_repr(v, 60)  # bounded cost: never the repr of a whole (alias-bombed) structure
+
+
+def _keyname(k: Any) -> str:
+    """A key as a field name: short text as it is, anything else as a bounded repr."""
+    return k if isinstance(k, str) and len(k) <= 60 else _short(k)
 
 
 def _keys(d: Mapping, where: str, allowed: Sequence[str], required: Sequence[str] = ()) -> None:
     prefix = f"{where}." if where else ""
     for k in d:
         if not isinstance(k, str) or k not in allowed:
-            raise SpecError(f"{prefix}{k}", f"unknown key; allowed here: {list(allowed)}")
+            raise SpecError(f"{prefix}{_keyname(k)}", f"unknown key; allowed here: {list(allowed)}")
     for k in required:
         if k not in d:
             raise SpecError(f"{prefix}{k}", "missing required field")
@@ -479,13 +573,16 @@ def _number(
     return v
 
 
-def _integer(v: Any, where: str, *, minimum: int) -> int:
+def _integer(
+    v: Any, where: str, *, minimum: int, maximum: int | None = None, note: str = ""
+) -> int:
     if isinstance(v, float) and v.is_integer():
         v = int(v)
+    want = f">= {minimum}" if maximum is None else f">= {minimum} and <= {maximum}"
     if isinstance(v, bool) or not isinstance(v, int):
-        raise SpecError(where, f"expected an integer >= {minimum}, got {_tname(v)} {_short(v)}")
-    if v < minimum:
-        raise SpecError(where, f"expected an integer >= {minimum}, got {v}")
+        raise SpecError(where, f"expected an integer {want}, got {_tname(v)} {_short(v)}")
+    if v < minimum or (maximum is not None and v > maximum):
+        raise SpecError(where, f"expected an integer {want}{note}, got {_short(v)}")
     return v
 
 
@@ -533,11 +630,19 @@ def _load_yaml(text: str, where: str):
         out = {}
         for knode, vnode in node.value:
             key = loader.construct_object(knode, deep=deep)
-            if key in out:
-                mark = knode.start_mark
+            mark = knode.start_mark
+            try:
+                hash(key)
+            except TypeError:
                 raise SpecError(
                     where,
-                    f"duplicate key {key!r} at line {mark.line + 1}, column {mark.column + 1}",
+                    f"a key at line {mark.line + 1}, column {mark.column + 1} is a "
+                    f"{_tname(key)}; expected a name",
+                ) from None
+            if key in out:
+                raise SpecError(
+                    where,
+                    f"duplicate key {short_repr(key)} at line {mark.line + 1}, column {mark.column + 1}",
                 )
             out[key] = loader.construct_object(vnode, deep=deep)
         return out
@@ -545,6 +650,8 @@ def _load_yaml(text: str, where: str):
     _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:
+        raise SpecError(where, "invalid YAML: nested too deeply") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -556,7 +663,7 @@ def _json_unique(pairs, where: str):
     out = {}
     for k, v in pairs:
         if k in out:
-            raise SpecError(where, f"duplicate key {k!r}")
+            raise SpecError(where, f"duplicate key {short_repr(k)}")
         out[k] = v
     return out
 
@@ -645,6 +752,8 @@ def apply_settings(
     items = (
         settings.items() if isinstance(settings, Mapping) else [_split_setting(s) for s in settings]
     )
+    weights = np.zeros(p.size, dtype=bool)  # the layer's rule: weights must be >= 0
+    weights[layout.group("w_own")] = weights[layout.group("w_pair")] = True
     for name, value in items:
         where = f"--set {name}"
         vals = _parse_values(value, where)
@@ -655,27 +764,31 @@ def apply_settings(
                     where,
                     f"expected {b.size} comma-separated numbers for block {name!r}, got {vals.size}",
                 )
-            p[b.slice] = vals
+            idx = np.arange(b.start, b.start + b.size)
         elif name in entries:
             if vals.size != 1:
                 raise SpecError(where, f"expected one number for entry {name!r}, got {vals.size}")
-            p[entries[name]] = vals[0]
+            idx = np.array([entries[name]])
         else:
             blocks = [b.name for b in layout.blocks]
             raise SpecError(
                 where,
                 f"unknown parameter; expected a block {blocks} or one of its entries (e.g. {layout.names[0]!r})",
             )
+        neg = weights[idx] & (vals < 0)
+        if neg.any():
+            raise SpecError(where, f"expected a number >= 0{WEIGHT_RULE}, got {vals[neg][0]:g}")
+        p[idx] = vals
     return p
 
 
 def _split_setting(s: str) -> tuple[str, str]:
     if not isinstance(s, str) or "=" not in s:
-        raise SpecError("--set", f"expected NAME=VALUE, got {s!r}")
+        raise SpecError("--set", f"expected NAME=VALUE, got {short_repr(s)}")
     name, value = s.split("=", 1)
     name = name.strip()
     if not name:
-        raise SpecError("--set", f"expected NAME=VALUE with a parameter name, got {s!r}")
+        raise SpecError("--set", f"expected NAME=VALUE with a parameter name, got {short_repr(s)}")
     return name, value
 
 
@@ -686,14 +799,14 @@ def _parse_values(value: Any, where: str) -> np.ndarray:
         try:
             vals = np.array([float(t) for t in parts], dtype=float)
         except ValueError:
-            raise SpecError(where, f"expected numbers, got {value!r}") from None
+            raise SpecError(where, f"expected numbers, got {short_repr(value)}") from None
     else:
         try:
             vals = np.asarray(value, dtype=float).reshape(-1)
         except (TypeError, ValueError):
-            raise SpecError(where, f"expected numbers, got {value!r}") from None
+            raise SpecError(where, f"expected numbers, got {short_repr(value)}") from None
     if vals.size == 0:
         raise SpecError(where, "expected at least one number")
     if not np.all(np.isfinite(vals)):
-        raise SpecError(where, f"expected finite numbers, got {value!r}")
+        raise SpecError(where, f"expected finite numbers, got {short_repr(value)}")
     return vals

@@ -40,11 +40,27 @@ def _figure(figsize):
 
 
 def _save(fig, path):
+    """Write ``fig`` to ``path`` atomically (format from the suffix, PNG if none)."""
     if path is not None:
+        from scenarios.files import write_atomic
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path)
+        fmt = path.suffix.lstrip(".").lower() or "png"
+        write_atomic(path, lambda f: fig.savefig(f, format=fmt))
     return fig
+
+
+#: positions farther than this (metres) from the origin are not drawn
+_FAR = 1e9
+
+
+def _drawable(pts: np.ndarray) -> np.ndarray:
+    """``pts`` with NaN where an entry is not finite or beyond ``_FAR`` (a gap in a line)."""
+    pts = np.array(pts, dtype=float)
+    with np.errstate(invalid="ignore"):
+        far = ~(np.abs(pts) <= _FAR)
+    pts[np.broadcast_to(far.any(axis=-1, keepdims=True), pts.shape)] = np.nan
+    return pts
 
 
 def _snapshot_steps(K: int, n: int) -> list[int]:
@@ -82,7 +98,9 @@ def plot_trajectories(
         raise SpecError("x", f"expected {game.n_x} states (n_x), got {x.size}")
     p = game.params.defaults() if p is None else np.asarray(p, dtype=float).reshape(-1)
     blocks = game.params.unpack(p)
-    pos = game.positions(x)  # (N, K+1, 2)
+    # NaN/inf or absurdly far positions (a failed solve) are left out of the frame and not
+    # drawn: matplotlib cannot place ticks on a 1e308 m axis
+    pos = _drawable(game.positions(x))  # (N, K+1, 2)
     # frame: trajectories and goals, a margin of the largest radius (paths may be long)
     pts = [pos.reshape(-1, 2)]
     for a in game.agents:
@@ -90,12 +108,18 @@ def plot_trajectories(
             pts.append(blocks[f"goal.{a.name}"][None, :])
         elif a.goal is not None:
             pts.append(np.asarray(a.goal, dtype=float)[None, :])
-    allp = np.concatenate(pts)
+    allp = _drawable(np.concatenate(pts))
+    allp = allp[np.isfinite(allp).all(axis=1)]
+    if not allp.size:
+        allp = np.zeros((1, 2))
     r = max((a.radius for a in game.agents), default=0.0)
+    r = r if r <= _FAR else 0.0
     lo, hi = allp.min(axis=0) - r - 0.5, allp.max(axis=0) + r + 0.5
     fig = None
     if ax is None:
-        aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+        aspect = float(aspect) if np.isfinite(aspect) and aspect > 0 else 1.0
         fig = _figure((8.0, float(np.clip(6.6 * aspect, 0.9, 7.0)) + 1.1))
         ax = fig.add_subplot(1, 1, 1)
     colors = agent_colors(game.N)
@@ -107,6 +131,8 @@ def plot_trajectories(
             ax.plot(poly[:, 0], poly[:, 1], ls="--", lw=1.0, color=c, alpha=0.45, zorder=1)
         ax.plot(pos[i, :, 0], pos[i, :, 1], "-", lw=1.8, color=c, zorder=3, label=a.name)
         for k in steps:
+            if not np.all(np.isfinite(pos[i, k])) or not a.radius <= _FAR:
+                continue
             alpha = 0.15 + 0.35 * k / max(game.K, 1)
             ax.add_patch(
                 Circle(
@@ -129,14 +155,15 @@ def plot_trajectories(
                     color="black",
                     zorder=4,
                 )
-        ax.plot(*pos[i, 0], "o", ms=7, color=c, markeredgecolor="black", zorder=5)
+        if np.all(np.isfinite(pos[i, 0])):
+            ax.plot(*pos[i, 0], "o", ms=7, color=c, markeredgecolor="black", zorder=5)
         if f"goal.{a.name}" in blocks:
             g = blocks[f"goal.{a.name}"]
             ax.plot(g[0], g[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
         elif a.goal is not None:
             ax.plot(a.goal[0], a.goal[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
     for label, xo in (others or {}).items():
-        po = game.positions(np.asarray(xo, dtype=float).reshape(-1))
+        po = _drawable(game.positions(np.asarray(xo, dtype=float).reshape(-1)))
         for i in range(game.N):
             ax.plot(
                 po[i, :, 0],
@@ -177,8 +204,9 @@ def plot_energy_history(
     fig = _figure((6.0, 3.8))
     ax = fig.add_subplot(1, 1, 1)
     for label, h in histories.items():
-        h = np.asarray(h, dtype=float).reshape(-1)
-        ax.plot(np.arange(h.size), np.maximum(h, 1e-300), "-o", ms=2.5, lw=1.4, label=label)
+        h = np.asarray([np.nan if v is None else v for v in np.ravel(h)], dtype=float)
+        h = np.where(np.isfinite(h), np.maximum(h, 1e-300), np.nan)  # NaN/inf: a gap
+        ax.plot(np.arange(h.size), h, "-o", ms=2.5, lw=1.4, label=label)
     ax.set_yscale("log")
     ax.set_xlabel("iteration")
     ax.set_ylabel("energy E")

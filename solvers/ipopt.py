@@ -30,23 +30,28 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, short_repr
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
-from .lm import check_options
-from .result import SolveResult, Status
+from .lm import MAX_STEPS, check_options
+from .result import SolveResult, Status, demote_nonfinite
 
 __all__ = ["IpoptOptions", "IpoptSolver", "solve_ipopt", "ipopt_status"]
 
 Bounds = tuple[tuple[str, tuple[float, ...], tuple[float, ...]], ...]
 
+# Only IPOPT's own first-order stops are CONVERGED: "Solved_To_Acceptable_Level" means the
+# (looser) acceptable_tol held for acceptable_iter iterations in a row. A search direction
+# too small to move the iterate is a stall, like LM's damping cap; everything else
+# (restoration failure, diverging iterates, errors) is FAILED.
 _STATUS = {
     "Solve_Succeeded": Status.CONVERGED,
     "Solved_To_Acceptable_Level": Status.CONVERGED,
     "Maximum_Iterations_Exceeded": Status.MAX_ITER,
     "Infeasible_Problem_Detected": Status.INFEASIBLE,
     "Invalid_Number_Detected": Status.NONFINITE,
+    "Search_Direction_Becomes_Too_Small": Status.STALLED,
 }
 
 
@@ -63,7 +68,7 @@ def _bound_value(v, where: str, default: float) -> float:
         or not isinstance(v, (int, float, np.floating, np.integer))
         or math.isnan(v)
     ):
-        raise SpecError(where, f"expected a number, inf or None, got {v!r}")
+        raise SpecError(where, f"expected a number, inf or None, got {short_repr(v)}")
     return float(v)
 
 
@@ -82,9 +87,9 @@ def _normalize_bounds(value, where: str) -> Bounds | None:
     for name, pair in value.items():
         w = f"{where}[{name!r}]"
         if not isinstance(name, str):
-            raise SpecError(where, f"expected agent names as keys, got {name!r}")
+            raise SpecError(where, f"expected agent names as keys, got {short_repr(name)}")
         if not isinstance(pair, Sequence) or isinstance(pair, str) or len(pair) != 2:
-            raise SpecError(w, f"expected a pair (lower list, upper list), got {pair!r}")
+            raise SpecError(w, f"expected a pair (lower list, upper list), got {short_repr(pair)}")
         lo_in, hi_in = pair
         if (
             not isinstance(lo_in, Sequence)
@@ -93,7 +98,8 @@ def _normalize_bounds(value, where: str) -> Bounds | None:
             or isinstance(hi_in, str)
         ):
             raise SpecError(
-                w, f"expected two lists of numbers (None or inf for no bound), got {pair!r}"
+                w,
+                f"expected two lists of numbers (None or inf for no bound), got {short_repr(pair)}",
             )
         if len(lo_in) != len(hi_in):
             raise SpecError(
@@ -133,15 +139,18 @@ class IpoptOptions:
 
     def __post_init__(self):
         for name in ("max_iter", "acceptable_iter"):
-            check_number(f"ipopt.{name}", getattr(self, name), lo=0, integer=True)
+            check_number(f"ipopt.{name}", getattr(self, name), lo=0, hi=MAX_STEPS, integer=True)
         for name in ("tol", "acceptable_tol"):
             check_number(f"ipopt.{name}", getattr(self, name), lo=0, lo_open=True)
         check_number("ipopt.print_level", self.print_level, lo=0, hi=12, integer=True)
         if self.hessian not in ("exact", "gn"):
-            raise SpecError("ipopt.hessian", f"expected 'exact' or 'gn', got {self.hessian!r}")
+            raise SpecError(
+                "ipopt.hessian", f"expected 'exact' or 'gn', got {short_repr(self.hessian)}"
+            )
         if not isinstance(self.linear_solver, str) or not self.linear_solver:
             raise SpecError(
-                "ipopt.linear_solver", f"expected a solver name, got {self.linear_solver!r}"
+                "ipopt.linear_solver",
+                f"expected a solver name, got {short_repr(self.linear_solver)}",
             )
         object.__setattr__(
             self, "control_bounds", _normalize_bounds(self.control_bounds, "ipopt.control_bounds")
@@ -280,8 +289,7 @@ class IpoptSolver:
         status = np.empty(len(runs), dtype=object)
         for b, r in enumerate(runs):
             status[b] = ipopt_status(r["return_status"])
-            if status[b] is Status.CONVERGED and not np.isfinite(E[b]):
-                status[b] = Status.NONFINITE
+        status = demote_nonfinite(status, E[:, None], X, C, U)
         S = max(len(r["history"]) for r in runs)
         S = max(S, 1)
         hist = np.empty((S, len(runs)))
@@ -338,8 +346,10 @@ def solve_ipopt(
     for a ``(game, options)`` pair and reused afterwards. Status: ``Solve_Succeeded`` and
     ``Solved_To_Acceptable_Level`` -> ``CONVERGED``, ``Maximum_Iterations_Exceeded`` ->
     ``MAX_ITER``, ``Infeasible_Problem_Detected`` -> ``INFEASIBLE``,
-    ``Invalid_Number_Detected`` -> ``NONFINITE``, anything else -> ``FAILED``; IPOPT's
-    string is ``result.info["return_status"]``.
+    ``Invalid_Number_Detected`` -> ``NONFINITE``, ``Search_Direction_Becomes_Too_Small`` ->
+    ``STALLED``, anything else -> ``FAILED``; a usable-looking status with NaN or inf in
+    the energy, costs, states or controls becomes ``NONFINITE``. IPOPT's string is
+    ``result.info["return_status"]``.
     """
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")

@@ -30,13 +30,17 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, short_repr
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
-from .result import SolveResult, Status
+from .result import SolveResult, Status, demote_nonfinite
 
-__all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options"]
+__all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options", "MAX_STEPS"]
+
+#: Largest iteration limit an options object accepts (``lm.steps``, ``ipopt.max_iter``):
+#: far above any converging solve, small enough that a typo cannot run for days.
+MAX_STEPS = 10_000_000
 
 
 def check_options(cls, values: dict | None, where: str):
@@ -47,6 +51,8 @@ def check_options(cls, values: dict | None, where: str):
         return values
     if not isinstance(values, dict):
         raise SpecError(where, f"expected a mapping of options, got {type(values).__name__}")
+    if not all(isinstance(k, str) for k in values):
+        raise SpecError(where, f"expected option names as keys, got {short_repr(list(values))}")
     names = {f.name for f in fields(cls)}
     unknown = sorted(set(values) - names)
     if unknown:
@@ -69,10 +75,11 @@ class LMOptions:
     damping_up: float = 10.0  #: factor on lambda after a rejected step
     damping_down: float = 0.3  #: factor on lambda after an accepted step
     min_damping: float = 1e-9  #: lower clamp of lambda
-    max_damping: float = 1e9  #: a problem whose lambda exceeds this cannot decrease E: converged
+    max_damping: float = 1e9  #: stop when lambda exceeds this (E cannot be lowered further)
     ellipsoidal: bool = False  #: D = diag(J'J) instead of the identity
-    gtol: float = 1e-8  #: stop when |J'r|_inf <= gtol (0 disables)
+    gtol: float = 1e-8  #: stop, converged, when |J'r|_inf <= gtol (0 disables)
     ftol: float = 1e-12  #: stop when an accepted step lowers E by <= ftol * (1 + E) (0 disables)
+    ctol: float = 1e-4  #: an ftol/max_damping stop is converged iff max_j cos(r, J e_j) <= ctol
     backend: str = (
         "structured"  #: Gauss-Newton backend: "structured" (stage-wise Riccati, exact) or "dense"
     )
@@ -82,8 +89,16 @@ class LMOptions:
     threads: int | None = None  #: threads for mapped evaluation (None: EPO_THREADS or all cores)
 
     def __post_init__(self):
-        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 0:
-            raise SpecError("lm.steps", f"expected an integer >= 0, got {self.steps!r}")
+        if (
+            isinstance(self.steps, bool)
+            or not isinstance(self.steps, int)
+            or not 0 <= self.steps <= MAX_STEPS
+        ):
+            raise SpecError(
+                "lm.steps",
+                f"expected an integer >= 0 and <= {MAX_STEPS} (the iteration limit), "
+                f"got {short_repr(self.steps)}",
+            )
         _pos("step_size", self.step_size)
         if self.step_size > 1:
             raise SpecError("lm.step_size", f"expected 0 < step_size <= 1, got {self.step_size}")
@@ -91,6 +106,7 @@ class LMOptions:
         _pos("damping_up", self.damping_up)
         _pos("damping_down", self.damping_down)
         _pos("gtol", self.gtol, allow_zero=True)
+        _pos("ctol", self.ctol)
         _pos("min_damping", self.min_damping, allow_zero=True)
         _pos("max_damping", self.max_damping)
         if not self.damping_up > 1 or not self.damping_down < 1:
@@ -98,18 +114,22 @@ class LMOptions:
                 "lm.damping_up/damping_down",
                 f"expected damping_up > 1 and damping_down < 1, got {self.damping_up}, {self.damping_down}",
             )
-        for name in ("adaptive_damping", "ellipsoidal"):
+        for name in ("adaptive_damping", "ellipsoidal", "compiled"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(
-                    f"lm.{name}", f"expected true or false, got {getattr(self, name)!r}"
+                    f"lm.{name}", f"expected true or false, got {short_repr(getattr(self, name))}"
                 )
         if self.threads is not None and (
             isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
         ):
-            raise SpecError("lm.threads", f"expected an integer >= 1 or null, got {self.threads!r}")
+            raise SpecError(
+                "lm.threads", f"expected an integer >= 1 or null, got {short_repr(self.threads)}"
+            )
         _pos("ftol", self.ftol, allow_zero=True)
         if self.backend not in ("dense", "structured"):
-            raise SpecError("lm.backend", f"expected 'dense' or 'structured', got {self.backend!r}")
+            raise SpecError(
+                "lm.backend", f"expected 'dense' or 'structured', got {short_repr(self.backend)}"
+            )
 
     @classmethod
     def paper(cls, **overrides) -> LMOptions:
@@ -230,13 +250,16 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
     lam = np.full(B, float(opts.damping))
     active = np.ones(B, dtype=bool)
     status = np.full(B, Status.MAX_ITER, dtype=object)
+    stop = np.full(B, "max_iter", dtype=object)  # why each problem stopped (info["stop"])
     iters = np.zeros(B, dtype=int)
     lin = be.linearize(U, P)
     E = lin.energy.copy()
+    # history grows with the steps taken (a loop that ended early stops here, whatever
+    # opts.steps is), never with the iteration limit
     hist = [E.copy()]
     lam_hist = [lam.copy()]
     bad = ~np.isfinite(E) | ~np.all(np.isfinite(lin.gradient), axis=1)
-    status[bad], active[bad] = Status.NONFINITE, False
+    status[bad], active[bad], stop[bad] = Status.NONFINITE, False, "nonfinite"
 
     def converged_grad(lin_):
         return (
@@ -246,13 +269,11 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         )
 
     done = converged_grad(lin) & active
-    status[done], active[done] = Status.CONVERGED, False
+    status[done], active[done], stop[done] = Status.CONVERGED, False, "gtol"
 
     for _ in range(opts.steps):
         if not active.any():
-            hist.append(E.copy())
-            lam_hist.append(lam.copy())
-            continue
+            break
         du = be.solve(lin, lam, -lin.gradient, opts.ellipsoidal)
         U_try = U + opts.step_size * du
         finite = np.all(np.isfinite(U_try), axis=1)
@@ -271,25 +292,36 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         if nonfinite.any():  # freeze at the last finite iterate
             U[nonfinite] = U_prev[nonfinite]
             status[nonfinite], active[nonfinite] = Status.NONFINITE, False
+            stop[nonfinite] = "nonfinite"
         decrease = E - E_new
         if opts.adaptive_damping:
             lam = np.where(accept, np.maximum(lam * opts.damping_down, opts.min_damping), lam)
             lam = np.where(active & ~accept, lam * opts.damping_up, lam)
-            stalled = active & (lam > opts.max_damping)
-            status[stalled], active[stalled] = Status.CONVERGED, False
+            capped = active & (lam > opts.max_damping)
+            status[capped], active[capped], stop[capped] = Status.STALLED, False, "max_damping"
         keep = ~nonfinite
         E = np.where(keep, E_new, E)
         lin = _merge(lin, new_lin, keep)
-        small = np.zeros(B, bool)
+        grad_ok = active & converged_grad(lin)
+        status[grad_ok], active[grad_ok], stop[grad_ok] = Status.CONVERGED, False, "gtol"
         if opts.ftol > 0:
-            small = accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(E)))
-        conv = active & (converged_grad(lin) | small)
-        status[conv], active[conv] = Status.CONVERGED, False
+            small = active & accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(E)))
+            status[small], active[small], stop[small] = Status.STALLED, False, "ftol"
         hist.append(E.copy())
         lam_hist.append(lam.copy())
 
+    # A stop without progress (ftol, damping cap) is converged only where the first-order
+    # test holds; otherwise the iterate is a stall, not a stationary point.
+    cos = np.zeros(B)
+    candidates = status == Status.STALLED
+    if candidates.any():
+        cos = residual_cosine(lin, be)
+        status[candidates & (cos <= opts.ctol)] = Status.CONVERGED
+
     X = _rollout(game, U, P, opts.threads)
     C = batch_function(game, "agent_costs", opts.threads)(U, P)[0]
+    status = demote_nonfinite(status, E[:, None], X, C)
+    stop[(status == Status.NONFINITE) & (stop != "nonfinite")] = "nonfinite"
     res = SolveResult(
         solver="lm",
         controls=U,
@@ -301,9 +333,39 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         energy_history=np.stack(hist),
         grad_norm=np.max(np.abs(lin.gradient), axis=1) if game.n_u else np.zeros(B),
         wall_time=time.perf_counter() - t0,
-        info={"damping": lam, "damping_history": np.stack(lam_hist), "options": opts},
+        info={
+            "damping": lam,
+            "damping_history": np.stack(lam_hist),
+            "stop": stop,
+            "residual_cosine": cos,
+            "options": opts,
+        },
     )
     return res[0] if single else res
+
+
+def residual_cosine(lin, backend=None) -> np.ndarray:
+    """Scale-free first-order measure ``max_j |(J'r)_j| / (||r|| ||J e_j||)``, ``(B,)``.
+
+    The largest cosine between the residual and a column of ``J`` (MINPACK's ``gtol``
+    test): 0 at a stationary point whatever the scale of the weights, about 1 where a
+    control still pulls straight along the residual. Columns with ``J e_j = 0`` count 0.
+    """
+    g = np.abs(np.asarray(lin.gradient, dtype=float))
+    B, n = g.shape
+    if n == 0:
+        return np.zeros(B)
+    if hasattr(lin, "diag_jtj") and hasattr(lin, "backend"):  # structured: stage layout
+        d = np.empty((B, n))
+        d[:, lin.backend._u_index] = lin.diag_jtj().reshape(B, -1)
+    else:
+        d = np.einsum("bii->bi", lin.JtJ)
+    rn = np.sqrt(np.einsum("bi,bi->b", lin.r, lin.r))
+    scale = np.sqrt(np.maximum(d, 0.0)) * rn[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(g > 0, g / scale, 0.0)
+    c = np.where(np.isfinite(c), c, np.inf)  # a zero scale with a non-zero gradient
+    return np.max(c, axis=1)
 
 
 def _merge(old: Linearization, new: Linearization, keep: np.ndarray) -> Linearization:

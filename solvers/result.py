@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
-__all__ = ["Status", "SolveResult"]
+__all__ = ["Status", "SolveResult", "fmt_number", "demote_nonfinite"]
 
 
 class Status(enum.Enum):
@@ -26,6 +27,7 @@ class Status(enum.Enum):
     NONFINITE = "nonfinite"
     INFEASIBLE = "infeasible"
     FAILED = "failed"
+    STALLED = "stalled"  # appended last: integer codes (learning.layer.STATUS_CODES) stay stable
 
     @property
     def message(self) -> str:
@@ -33,16 +35,46 @@ class Status(enum.Enum):
 
     @property
     def ok(self) -> bool:
+        """A usable iterate: ``CONVERGED`` or ``MAX_ITER`` (a ``STALLED`` point is not one)."""
         return self in (Status.CONVERGED, Status.MAX_ITER)
 
 
+def fmt_number(value: Any, spec: str = ".6g") -> str:
+    """``value`` formatted with ``spec``; ``None`` (a non-finite value in a result file) and
+    anything that is not a number are written as words, NaN and inf as ``nan`` / ``inf``."""
+    if value is None:
+        return "none (non-finite)"
+    try:
+        return format(float(value), spec)
+    except (TypeError, ValueError):
+        return str(value)
+
+
 _MESSAGES = {
-    Status.CONVERGED: "converged: a stopping tolerance was met",
+    Status.CONVERGED: "converged: a first-order (stationarity) tolerance was met",
     Status.MAX_ITER: "stopped after the configured number of iterations without meeting a tolerance",
     Status.NONFINITE: "stopped: NaN or inf in the energy or the step (problem masked, controls kept finite)",
     Status.INFEASIBLE: "stopped: the constraints could not be satisfied",
     Status.FAILED: "failed: the solver reported an error",
+    Status.STALLED: (
+        "stalled: the solver could not lower the energy any further (damping at its cap or a "
+        "negligible decrease) but the first-order test fails; not a stationary point"
+    ),
 }
+
+
+def demote_nonfinite(status: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
+    """``status`` (``(B,)`` objects) with ``NONFINITE`` wherever a usable-looking status
+    (converged, max_iter, stalled) goes with NaN or inf in one of ``arrays`` (``(B, ...)``):
+    a result whose energy, costs or states are not finite is never reported as usable."""
+    bad = np.zeros(len(status), dtype=bool)
+    for a in arrays:
+        a = np.asarray(a, dtype=float)
+        bad |= ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+    soft = np.array([s in (Status.CONVERGED, Status.MAX_ITER, Status.STALLED) for s in status])
+    out = np.array(status, dtype=object)
+    out[bad & soft] = Status.NONFINITE
+    return out
 
 
 @dataclass(frozen=True)
@@ -58,7 +90,8 @@ class SolveResult:
     agent_costs: each agent's own game cost ``C_i``, ``(..., N)``.
     status: :class:`Status` (one problem) or an object array of them.
     iterations: iterations taken, ``(...)``.
-    energy_history: energy before each iteration and at the end, ``(S+1, ...)``;
+    energy_history: energy before each iteration and at the end, ``(S+1, ...)`` where ``S``
+        is the largest number of iterations taken in the batch (not the iteration limit);
         entries after a problem stopped repeat its final value.
     grad_norm: infinity norm of the gradient of ``E`` at the solution, ``(...)``.
     wall_time: seconds for the whole call.
@@ -124,20 +157,24 @@ class SolveResult:
         return SolveResult(**kw)
 
     def summary(self) -> str:
+        """One line; total over every status (NaN, inf and missing values are printed as such)."""
         if self.batched:
-            e = np.asarray(self.energy)
+            e = np.asarray(self.energy, dtype=float).reshape(-1)
+            fin = np.isfinite(e)
+            mean = f"{e[fin].mean():.6g}" if fin.any() else "n/a"
+            nonfin = f" ({e.size - int(fin.sum())} non-finite)" if not fin.all() else ""
             return (
-                f"{self.solver}: {e.size} problems, {self.message}; energy mean {e.mean():.6g}, "
+                f"{self.solver}: {e.size} problems, {self.message}; energy mean {mean}{nonfin}, "
                 f"iterations mean {np.mean(self.iterations):.1f}, {self.wall_time * 1e3:.1f} ms"
             )
         return (
-            f"{self.solver}: {self.status.value} ({self.status.message}); energy {float(self.energy):.6g}, "
-            f"{int(self.iterations)} iterations, |grad|_inf {float(self.grad_norm):.3g}, "
-            f"{self.wall_time * 1e3:.1f} ms"
+            f"{self.solver}: {self.status.value} ({self.status.message}); "
+            f"energy {fmt_number(self.energy, '.6g')}, {int(self.iterations)} iterations, "
+            f"|grad|_inf {fmt_number(self.grad_norm, '.3g')}, {self.wall_time * 1e3:.1f} ms"
         )
 
     def to_dict(self) -> dict:
-        """JSON-ready dictionary (single problem or batch)."""
+        """JSON-ready dictionary (single problem or batch); NaN and inf become ``None``."""
 
         def conv(v):
             if isinstance(v, enum.Enum):
@@ -145,11 +182,13 @@ class SolveResult:
             if dataclasses.is_dataclass(v) and not isinstance(v, type):
                 return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
             if isinstance(v, np.ndarray):
-                if v.dtype == object:
+                if v.dtype == object or v.dtype.kind in "fc":
                     return [conv(x) for x in v.tolist()] if v.ndim else conv(v.item())
                 return v.tolist()
             if isinstance(v, (np.floating, np.integer, np.bool_)):
-                return v.item()
+                return conv(v.item())
+            if isinstance(v, float) and not math.isfinite(v):
+                return None  # strict JSON has no NaN / inf
             if isinstance(v, dict):
                 return {k: conv(x) for k, x in v.items()}
             if isinstance(v, (list, tuple)):

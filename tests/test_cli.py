@@ -153,26 +153,20 @@ def test_solve_file_options_are_used(capsys, tmp_path):
         assert json.loads(out.read_text())["iterations"] == n
 
 
-def test_failed_solve_exit_1_after_writing(capsys, tmp_path, monkeypatch):
-    """A solve without a usable solution writes its files, then exits with status 1."""
-    import dataclasses
-
-    import scenarios.commands.solve as solve_mod
-    from solvers.result import Status
-
-    real = solve_mod.run_solve
-
-    def failing(*args, **kwargs):
-        res, cert = real(*args, **kwargs)
-        return dataclasses.replace(res, status=Status.NONFINITE), cert
-
-    monkeypatch.setattr(solve_mod, "run_solve", failing)
-    out = tmp_path / "r.json"
-    rc, stdout, err = run(
-        capsys, "solve", example_path("crossing2"), "--steps", 1, "--no-certificate", "--out", out
-    )
-    assert rc == 1
-    assert json.loads(out.read_text())["status"] == "nonfinite"
+@pytest.mark.parametrize("solver", ["lm", "ipopt"])
+def test_failed_solve_exit_1_after_writing(capsys, tmp_path, solver):
+    """A real non-finite solve (a goal weight of 1e200 overflows the energy to inf) writes
+    its result file and figure, prints a summary, then exits with status 1."""
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    args = ["--solver", solver, "--set", "w.a0.goal=1e200", "--out", out, "--plot", fig]
+    rc, stdout, err = run(capsys, "solve", example_path("crossing2"), *args)
+    assert rc == 1, err
+    data = json.loads(out.read_text())  # strict JSON: the non-finite energy is null
+    assert data["status"] == "nonfinite" and data["ok"] is False
+    assert data["energy"] is None and data["agent_costs"]["a0"] is None
+    assert data["agent_costs"]["a1"] is not None  # the other agent's cost is finite
+    assert "energy none (non-finite)" in stdout and "Nash certificate: not computed" in stdout
+    assert fig.read_bytes()[:8] == PNG
     assert "did not give a usable solution" in err and "Traceback" not in err
 
 
@@ -338,6 +332,10 @@ def test_documented_commands_run(capsys, tmp_path, monkeypatch):
     for line in commands:
         rc, stdout, err = run(capsys, *shlex.split(line)[1:])
         assert rc == 0, f"{line}\n{err}"
+        if line.startswith("epo solve"):  # the printed status, not only the exit code
+            solver = "ipopt" if "--solver ipopt" in line else "lm"
+            assert re.search(rf"^{solver}: converged \(", stdout, re.M), f"{line}\n{stdout}"
+            assert "Nash certificate: passes" in stdout, f"{line}\n{stdout}"
     assert (tmp_path / "results" / "rp_lm.json").exists()
 
 

@@ -20,19 +20,27 @@ DEMO_SOLVERS = ("lm", "ipopt")
 
 
 def _row(game_name: str, data: dict) -> list[str]:
-    c = data["certificate"]
-    costs = " ".join(f"{v:.4g}" for v in data["agent_costs"].values())
+    """One table row of a result object; total over every status (no certificate, or
+    ``None`` for a non-finite value, prints as ``-`` / ``none``)."""
+    from scenarios.commands.solve import _largest
+    from solvers.result import fmt_number
+
+    def num(v, spec):
+        return "none" if v is None else fmt_number(v, spec)
+
+    c = data.get("certificate")
+    costs = " ".join(num(v, ".4g") for v in data["agent_costs"].values())
     return [
         game_name,
         data["solver"],
         data["status"],
-        f"{data['energy']:.6g}",
+        num(data["energy"], ".6g"),
         costs,
-        f"{max(c['best_response_gap']):.2g}",
-        f"{max(c['stationarity']):.2g}",
-        "yes" if c["ok"] else "NO",
+        num(_largest(c["best_response_gap"]), ".2g") if c else "-",
+        num(_largest(c["stationarity"]), ".2g") if c else "-",
+        ("yes" if c["ok"] else "NO") if c else "-",
         str(data["iterations"]),
-        f"{data['time_s']:.3f}",
+        num(data["time_s"], ".3f"),
     ]
 
 
@@ -54,11 +62,12 @@ def _table(header, rows) -> str:
 def demo(out_dir: Path):
     """Solve a 2-agent crossing and a 4-agent intersection with LM and IPOPT; compare."""
     from scenarios.commands.solve import energy_history, result_dict, run_solve, write_result
+    from scenarios.files import ensure_dir
     from scenarios.gamefile import example_path, load_game
     from scenarios.plotting import plot_energy_history, plot_trajectories
 
     t_all = time.perf_counter()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out_dir)
     rows, written = [], []
     for name in DEMO_GAMES:
         gf = load_game(example_path(name))
@@ -76,7 +85,7 @@ def demo(out_dir: Path):
             states[solver] = res.states
             hist[solver] = energy_history(res)
             click.echo(
-                f"  {solver:5s} {data['status']}, energy {data['energy']:.6g} "
+                f"  {solver:5s} {data['status']}, energy {rows[-1][3]} "
                 f"({time.perf_counter() - t0:.1f} s with set-up and certificate)"
             )
         fig = out_dir / f"{name}.png"

@@ -5,6 +5,12 @@ The result file (``--out``) is one JSON object, documented in
 (``(K, nu_i)``), ``energy``, ``agent_costs``, the local Nash ``certificate``, ``status``,
 ``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
 ``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
+
+Exit status of ``epo solve`` (also in ``docs/solvers.md``): 0 converged or stopped at the
+iteration limit (``max_iter``), 3 stalled (the solver could not lower the energy but the
+iterate is not stationary), 1 no usable solution (``nonfinite``, ``infeasible``,
+``failed``), 2 bad input or an output that cannot be written. The result file and the
+figure are written (atomically) before a non-zero exit, whatever the status.
 """
 
 from __future__ import annotations
@@ -21,6 +27,9 @@ import numpy as np
 
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
+from scenarios.files import write_atomic
+from solvers.lm import MAX_STEPS
+from solvers.result import Status, fmt_number
 
 RESULT_FORMAT = "epo-result/1"
 
@@ -32,7 +41,30 @@ __all__ = [
     "write_result",
     "read_result",
     "RESULT_FORMAT",
+    "EXIT_FAILED",
+    "EXIT_STALLED",
+    "exit_code",
 ]
+
+#: exit status of a solve without a usable solution (nonfinite, infeasible, failed)
+EXIT_FAILED = 1
+#: exit status of a stalled solve (no progress, first-order test fails)
+EXIT_STALLED = 3
+
+
+def exit_code(status: Status) -> int:
+    """Exit status of ``epo solve`` for a solver status (0 converged or max_iter)."""
+    if status is Status.STALLED:
+        return EXIT_STALLED
+    return 0 if status.ok else EXIT_FAILED
+
+
+class SolveExit(click.ClickException):
+    """A finished solve whose status is not usable: message on stderr, its own exit code."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.exit_code = code
 
 
 def _jsonable(v: Any) -> Any:
@@ -70,7 +102,7 @@ def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, cer
     else:
         raise SpecError("--solver", f"expected 'lm' or 'ipopt', got {solver!r}")
     cert = None
-    if certify:
+    if certify and res.status is not Status.NONFINITE:  # no certificate of NaN/inf values
         from solvers.nash import nash_certificate
 
         cert = nash_certificate(game, res.controls, p)
@@ -121,14 +153,17 @@ def energy_history(res) -> np.ndarray:
 
 
 def write_result(data: dict, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write a result object as strict JSON, atomically (all or nothing).
+
+    Non-finite floats become ``null`` (see :func:`result_dict`); a path that cannot be
+    written raises :class:`epo_casadi.errors.OutputError` and leaves no file behind.
+    """
+    data = _jsonable(data)  # idempotent; makes any caller's NaN/inf strict JSON
     # one line per top-level key: readable, and far shorter than an indented dump
     body = ",\n".join(
         f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in data.items()
     )
-    path.write_text("{\n" + body + "\n}\n", encoding="utf-8")
-    return path
+    return write_atomic(path, "{\n" + body + "\n}\n")
 
 
 def read_result(path: str | Path, game: PotentialGame) -> tuple[np.ndarray, np.ndarray]:
@@ -180,20 +215,33 @@ def read_result(path: str | Path, game: PotentialGame) -> tuple[np.ndarray, np.n
     return u, p
 
 
+def _largest(values) -> float | None:
+    """Largest entry of a list that may hold ``None`` (non-finite in JSON); ``None`` then."""
+    vals = list(values or [])
+    if not vals or any(v is None for v in vals):
+        return None
+    return max(vals)
+
+
 def summary_lines(game: PotentialGame, data: dict) -> list[str]:
-    costs = ", ".join(f"{a} {c:.6g}" for a, c in data["agent_costs"].items())
+    """The printed summary of a result object; total over every status (a non-finite
+    value, ``null`` in the file, prints as ``none (non-finite)``)."""
+    costs = ", ".join(f"{a} {fmt_number(c)}" for a, c in data["agent_costs"].items())
     lines = [
         f"{data['solver']}: {data['status']} ({data['message']})",
-        f"  energy {data['energy']:.6g} after {data['iterations']} iterations in {data['time_s']:.3g} s;"
-        f" |grad|_inf {data['grad_norm']:.3g}",
+        f"  energy {fmt_number(data['energy'])} after {data['iterations']} iterations in "
+        f"{fmt_number(data['time_s'], '.3g')} s; |grad|_inf {fmt_number(data['grad_norm'], '.3g')}",
         f"  agent costs: {costs}",
     ]
     c = data.get("certificate")
     if c is not None:
         lines.append(
             f"  Nash certificate: {'passes' if c['ok'] else 'FAILS'} (max |dC_i/du_i| "
-            f"{max(c['stationarity']):.3g}, max best-response gap {max(c['best_response_gap']):.3g})"
+            f"{fmt_number(_largest(c['stationarity']), '.3g')}, max best-response gap "
+            f"{fmt_number(_largest(c['best_response_gap']), '.3g')})"
         )
+    elif data.get("status") == Status.NONFINITE.value:
+        lines.append("  Nash certificate: not computed (NaN or inf in the solution)")
     return lines
 
 
@@ -208,7 +256,7 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
 )
 @click.option(
     "--steps",
-    type=click.IntRange(min=0),
+    type=click.IntRange(min=0, max=MAX_STEPS),
     default=None,
     help="Iteration limit (LM steps / IPOPT max_iter); overrides the file's solver options.",
 )
@@ -277,5 +325,8 @@ def solve(
         )
         click.echo(f"wrote {plot}")
     click.echo(f"total {time.perf_counter() - t0:.2f} s")
-    if not res.ok:
-        raise click.ClickException(f"the solve did not give a usable solution: {res.message}")
+    code = exit_code(res.status)
+    if code == EXIT_STALLED:
+        raise SolveExit(f"the solve stalled (exit {code}): {res.message}", code)
+    if code:
+        raise SolveExit(f"the solve did not give a usable solution: {res.message}", code)
