@@ -1,0 +1,84 @@
+"""The one place that imports highway-env (lazily: ``import scenarios.sim`` stays light).
+
+highway-env 1.12.1 imports pygame, gymnasium, pandas and matplotlib; it neither opens a
+window nor prints when imported this way (pygame's banner is hidden by highway-env itself,
+and ``SDL_VIDEODRIVER=dummy`` is set, if unset, so nothing can ever open a display), and it
+does not import torch. We use its road network (``RoadNetwork``, ``StraightLane``,
+``CircularLane``, ``SineLane``), its ``Road`` (stepping and rectangle collisions), its
+kinematic bicycle ``Vehicle`` (the ego) and its ``IDMVehicle`` (IDM longitudinal model and
+lane-following steering) for the other drivers; never its gymnasium environments.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from types import SimpleNamespace
+
+import numpy as np
+
+from epo_casadi.errors import EpoError
+
+__all__ = ["hw"]
+
+
+@functools.cache
+def hw() -> SimpleNamespace:
+    """highway-env's classes we use (imported on first call)."""
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    try:
+        from highway_env.road.lane import CircularLane, LineType, SineLane, StraightLane
+        from highway_env.road.road import Road, RoadNetwork
+        from highway_env.vehicle.behavior import IDMVehicle
+        from highway_env.vehicle.kinematics import Vehicle
+        from highway_env.vehicle.objects import Obstacle
+    except ImportError as exc:  # pragma: no cover - a broken install
+        raise EpoError(
+            f"highway-env is needed for this scenario (pip install highway-env==1.12.1): {exc}"
+        ) from None
+
+    class Driver(IDMVehicle):
+        """An IDM vehicle with lane-following steering and no lane changes, whose
+        acceleration is also capped by IDM towards ``stop_obstacle`` (a virtual standing
+        obstacle that the world's decision logic places when the driver yields)."""
+
+        stop_obstacle = None
+
+        def act(self, action=None):
+            if self.crashed:
+                return
+            self.follow_road()
+            if self.enable_lane_change:
+                self.change_lane_policy()
+            steer = float(
+                np.clip(
+                    self.steering_control(self.target_lane_index),
+                    -self.MAX_STEERING_ANGLE,
+                    self.MAX_STEERING_ANGLE,
+                )
+            )
+            front, rear = self.road.neighbour_vehicles(self, self.lane_index)
+            acc = self.acceleration(ego_vehicle=self, front_vehicle=front, rear_vehicle=rear)
+            if self.lane_index != self.target_lane_index:
+                f2, r2 = self.road.neighbour_vehicles(self, self.target_lane_index)
+                acc = min(acc, self.acceleration(ego_vehicle=self, front_vehicle=f2))
+            if self.stop_obstacle is not None:
+                acc = min(
+                    acc, self.acceleration(ego_vehicle=self, front_vehicle=self.stop_obstacle)
+                )
+            acc = float(np.clip(acc, -self.ACC_MAX, self.ACC_MAX))
+            Vehicle.act(self, {"steering": steer, "acceleration": acc})
+
+    return SimpleNamespace(
+        CircularLane=CircularLane,
+        LineType=LineType,
+        SineLane=SineLane,
+        StraightLane=StraightLane,
+        Road=Road,
+        RoadNetwork=RoadNetwork,
+        IDMVehicle=IDMVehicle,
+        Vehicle=Vehicle,
+        Obstacle=Obstacle,
+        Driver=Driver,
+    )

@@ -1,0 +1,483 @@
+"""Unprotected left turn with an oncoming vehicle, on highway-env (after the paper's CARLA
+scenario, App. E): agent 0, the ego (SDV), turns left across the lane of agent 1, an
+oncoming vehicle going straight.
+
+Frame and road network (metres, mathematical frame: x east, y north, headings CCW from
++x). The ego's road runs north-south; the crossing road meets it at the origin. The ego
+approaches from the south in lane 0 (next to the median, ``x = w/2``), turns left by the
+geometry's ``angle`` on a circular arc of radius ``turn_radius`` into the crossing road's
+lane 0 and drives on (lanes ``"ego_approach"``, ``"ego_turn"``, ``"ego_exit"``). The
+oncoming vehicle comes from the north in one of the ``lanes`` southbound lanes (drawn per
+episode) and goes straight (``"oncoming{i}_approach"``, ``"oncoming{i}_through"``). Every
+lane is a highway-env ``StraightLane`` / ``CircularLane`` in a ``RoadNetwork`` built here,
+so the geometry is a parameter (:class:`Intersection`, :data:`GEOMETRIES`); the same lanes,
+sampled, are the world's :class:`scenarios.maps.RoadMap`.
+
+Dynamics. The ego is a highway-env ``Vehicle`` (kinematic bicycle, one step of ``dt`` per
+command ``(a, delta)``: exactly ``VehicleModel.highway().step``). The oncoming vehicle is a
+highway-env ``IDMVehicle`` (IDM acceleration, lane-following steering, no lane change)
+whose go / yield decision is ours:
+
+Oncoming driver (hand-made, never the planner under test). Its character
+(:class:`~scenarios.sim.common.Character`) is drawn per episode: aggressiveness ``g`` in
+``U(aggressiveness)``, desired speed ``U(desired_speed) x`` speed limit, reaction time in
+``U(reaction)`` (s). IDM parameters follow ``g``: time headway ``2 - g`` s, comfortable
+acceleration ``2 + 2 g`` m/s^2. Every step, until it is committed (it passed its wait
+point, or it is going and could no longer stop before it braking at 5 m/s^2), it looks at the ego as it was
+``reaction`` s ago and applies :func:`~scenarios.sim.common.gap_decision`: it goes if the
+ego already left the conflict zone or if it clears the zone itself (accelerating to its
+desired speed) ``margin`` s before the ego (at constant speed) reaches it, where the margin
+runs from ``margin[0]`` (``g = 0``, cautious) to ``margin[1]`` (``g = 1``, bold, negative:
+it forces its way); otherwise it yields: IDM towards a virtual standing obstacle that stops
+it at its wait point (half a length before the conflict zone or at the crossing road's
+edge, whichever comes first). An ego standing still before the zone never reaches it, so
+the oncoming vehicle then goes. The conflict zone is where the two routes' centre lines
+are closer than 2.5 m (a vehicle width and a margin, less than any lane width, so adjacent
+parallel lanes do not conflict); reach / clear times add half a vehicle length each side.
+
+Tasks: the ego's :class:`~solvers.control.types.AgentTask` is its route (approach, turn,
+exit) resampled to ``n_path`` points, with the smallest speed limit on it (the turn's,
+``min(speed_limit, sqrt(3 R))``: 3 m/s^2 lateral acceleration) and its goal
+``goal_distance`` m into the exit lane; the oncoming vehicle's is its lane with its desired
+speed (:meth:`LeftTurnWorld.tasks`, the oracle's privilege).
+
+Collisions: ``collision="rectangles"`` (default) is highway-env's crash flag (oriented 5 m x
+2 m rectangles, ``Road.step``); ``"circles"``: the circles of ``radii`` overlap. The
+planners' ``radii`` (default 2.5 m = L / 2, the paper's over-approximation) do not change
+the rectangle test. After a crash highway-env brakes the crashed vehicles to a stop.
+
+Outcome (first terminal one sticks): ``collision``; ``off_road`` when the ego is more than
+``off_road_margin`` beyond the edge of every lane; ``success`` when it has driven
+``goal_distance`` along the exit lane after the turn; ``timeout`` after ``max_steps``.
+
+Observations: the ego exactly; the oncoming vehicle's position with Gaussian noise and
+dropouts (:class:`~scenarios.sim.common.Sensor`). Everything is drawn from generators
+seeded by ``reset(seed)``: an episode is bit-identical for a seed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from epo_casadi.errors import SpecError, check_number
+from solvers.control.types import AgentTask, Observation
+from solvers.control.vehicle import VehicleModel
+
+from ..maps import ConflictZone, RoadMap, project_to_polyline
+from ._highway import hw
+from .common import (
+    Character,
+    Latch,
+    Sensor,
+    build_options,
+    check_range,
+    check_sensor,
+    circles_overlap,
+    gap_decision,
+    seeds,
+    time_to_cover,
+    zone_times,
+)
+
+__all__ = ["Intersection", "GEOMETRIES", "LeftTurnOptions", "LeftTurnWorld"]
+
+LENGTH = 5.0  # highway-env Vehicle.LENGTH
+BRAKE = 5.0  # m/s^2, the braking a committed driver would need (IDM's COMFORT_ACC_MIN)
+LAT_ACC = 3.0  # m/s^2, lateral acceleration that sets the turn's speed limit
+CLEARANCE = 2.5  # m, centre lines closer than this form the conflict zone (width 2 + 0.5)
+
+
+@dataclass(frozen=True)
+class Intersection:
+    """Geometry of the left-turn intersection (see the module docstring)."""
+
+    name: str = "custom"  #: label
+    lane_width: float = 3.5  #: w (m), every lane
+    lanes: int = 1  #: lanes per direction on the ego's road (ego in lane 0)
+    cross_lanes: int = 1  #: lanes per direction on the crossing road
+    angle: float = 90.0  #: left-turn angle (deg): 90 = perpendicular crossing
+    turn_radius: float = 10.0  #: radius of the ego's turn arc (m)
+    speed_limit: float = 12.0  #: straight lanes (m/s); the turn: min(this, sqrt(3 R))
+    approach: float = 80.0  #: length of the approach lanes (m)
+    exit: float = 50.0  #: length of the exit lanes after the turn (m)
+
+    def __post_init__(self):
+        f = f"geometry[{self.name}]"
+        check_number(f"{f}.lane_width", self.lane_width, lo=2.5, hi=5.0)
+        check_number(f"{f}.lanes", self.lanes, lo=1, hi=3, integer=True)
+        check_number(f"{f}.cross_lanes", self.cross_lanes, lo=1, hi=3, integer=True)
+        check_number(f"{f}.angle", self.angle, lo=45.0, hi=135.0)
+        # the highway-env bicycle turns no tighter than (L/2) / sin(atan(tan(pi/4) / 2)) = 5.6 m
+        check_number(f"{f}.turn_radius", self.turn_radius, lo=6.0, hi=50.0)
+        check_number(f"{f}.speed_limit", self.speed_limit, lo=1.0, hi=40.0)
+        check_number(f"{f}.approach", self.approach, lo=30.0)
+        check_number(f"{f}.exit", self.exit, lo=20.0)
+
+
+#: the named geometries: widths, turn angles, lane counts and radii all differ
+GEOMETRIES: dict[str, Intersection] = {
+    "g0": Intersection("g0", lane_width=3.5, lanes=1, cross_lanes=1, angle=90.0, turn_radius=10.0),
+    "g1": Intersection(
+        "g1", lane_width=3.0, lanes=1, cross_lanes=1, angle=70.0, turn_radius=12.0, speed_limit=11.0
+    ),
+    "g2": Intersection(
+        "g2",
+        lane_width=3.75,
+        lanes=2,
+        cross_lanes=2,
+        angle=90.0,
+        turn_radius=12.0,
+        speed_limit=14.0,
+    ),
+    "g3": Intersection("g3", lane_width=3.25, lanes=2, cross_lanes=1, angle=115.0, turn_radius=9.0),
+}
+
+
+@dataclass(frozen=True)
+class LeftTurnOptions:
+    """Options of :class:`LeftTurnWorld` (frozen; unknown names are errors)."""
+
+    geometry: str | Intersection = "g0"  #: a name of GEOMETRIES or an Intersection
+    dt: float = 0.1  #: planning period = simulation step (s)
+    max_steps: int = 150  #: timeout (steps)
+    noise_std: float = 0.3  #: std of the position noise on other agents (m)
+    dropout_prob: float = 0.0  #: probability per step that an observed agent drops out
+    dropout_burst: int = 3  #: length of a dropout (steps)
+    ego_distance: tuple[float, float] = (12.0, 30.0)  #: ego centre to the conflict zone (m)
+    ego_speed: tuple[float, float] = (3.0, 7.0)  #: initial ego speed (m/s)
+    other_distance: tuple[float, float] = (20.0, 55.0)  #: oncoming centre to the zone (m)
+    aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the oncoming character
+    desired_speed: tuple[float, float] = (0.7, 1.0)  #: range, fraction of the speed limit
+    reaction: tuple[float, float] = (0.2, 1.0)  #: range of its reaction time (s)
+    character: Character | None = None  #: a fixed oncoming character (overrides the ranges)
+    margin: tuple[float, float] = (2.0, -1.0)  #: accepted time margin (s) at g = 0 and g = 1
+    radius: float = 2.5  #: circle radius of each vehicle for the planners (m)
+    collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
+    goal_distance: float = 15.0  #: success: driven this far along the exit lane (m)
+    off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
+    n_path: int = 60  #: points of each AgentTask path
+
+    def __post_init__(self):
+        p = "left-turn"
+        g = self.geometry
+        if isinstance(g, str):
+            if g not in GEOMETRIES:
+                raise SpecError(
+                    f"{p}.geometry", f"unknown geometry {g!r}; valid: {', '.join(GEOMETRIES)}"
+                )
+        elif not isinstance(g, Intersection):
+            raise SpecError(f"{p}.geometry", f"expected a name or an Intersection, got {g!r}")
+        check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
+        check_number(f"{p}.max_steps", self.max_steps, lo=1, integer=True)
+        check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        for name, lo, hi in (
+            ("ego_distance", 0.0, None),
+            ("ego_speed", 0.0, 30.0),
+            ("other_distance", 0.0, None),
+            ("aggressiveness", 0.0, 1.0),
+            ("desired_speed", 0.05, 1.5),
+            ("reaction", 0.0, 5.0),
+            ("margin", -10.0, 10.0),
+        ):
+            val = check_range(f"{p}.{name}", getattr(self, name), lo, hi, name != "margin")
+            object.__setattr__(self, name, val)
+        if self.character is not None and not isinstance(self.character, Character):
+            raise SpecError(f"{p}.character", f"expected a Character, got {self.character!r}")
+        check_number(f"{p}.radius", self.radius, lo=0.0, lo_open=True)
+        if self.collision not in ("rectangles", "circles"):
+            raise SpecError(
+                f"{p}.collision", f"expected 'rectangles' or 'circles', got {self.collision!r}"
+            )
+        check_number(f"{p}.goal_distance", self.goal_distance, lo=0.0)
+        check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
+        check_number(f"{p}.n_path", self.n_path, lo=2, integer=True)
+
+    @property
+    def intersection(self) -> Intersection:
+        return GEOMETRIES[self.geometry] if isinstance(self.geometry, str) else self.geometry
+
+
+def _unit(h: float) -> np.ndarray:
+    return np.array([math.cos(h), math.sin(h)])
+
+
+def build_network(geo: Intersection):
+    """highway-env ``RoadNetwork`` of the intersection, the lane-id names of its lanes and
+    the oncoming lanes' stop-line arc lengths (see the module docstring)."""
+    H = hw()
+    w, v = geo.lane_width, geo.speed_limit
+    d_in = np.array([0.0, 1.0])
+    h_out = math.pi / 2 + math.radians(geo.angle)
+    d_out, r_out = _unit(h_out), np.array([math.sin(h_out), -math.cos(h_out)])
+    cw = geo.cross_lanes * w
+    # P: the ego lane (x = w/2) meets the exit lane (r_out . p = w/2)
+    y_p = (w / 2 - r_out[0] * w / 2) / r_out[1]
+    P = np.array([w / 2, y_p])
+    R = geo.turn_radius
+    delta = math.radians(geo.angle)
+    T = R * math.tan(delta / 2)
+    A, B = P - T * d_in, P + T * d_out
+    C = A + R * np.array([-1.0, 0.0])
+    net = H.RoadNetwork()
+    names = {}
+
+    def add(a, b, lane, name=None):
+        net.add_lane(a, b, lane)
+        if name:
+            names[(a, b, len(net.graph[a][b]) - 1)] = name
+
+    kw = dict(width=w, speed_limit=v)
+    add("S0", "T", H.StraightLane(A - geo.approach * d_in, A, **kw), "ego_approach")
+    v_turn = min(v, math.sqrt(LAT_ACC * R))
+    add(
+        "T",
+        "X",
+        H.CircularLane(C, R, 0.0, delta, clockwise=True, width=w, speed_limit=v_turn),
+        "ego_turn",
+    )
+    t_b = float(d_out @ B)
+    Lc = max(geo.approach, abs(t_b) + geo.exit)
+    add("X", "W0", H.StraightLane(B, Lc * d_out + (w / 2) * r_out, **kw), "ego_exit")
+    add("wb0_a", "X", H.StraightLane(-Lc * d_out + (w / 2) * r_out, B, **kw), "westbound0_in")
+    for j in range(1, geo.cross_lanes):
+        o = (w / 2 + j * w) * r_out
+        add(f"wb{j}_a", f"wb{j}_b", H.StraightLane(-Lc * d_out + o, Lc * d_out + o, **kw))
+    for j in range(geo.cross_lanes):
+        o = -(w / 2 + j * w) * r_out
+        add(f"eb{j}_a", f"eb{j}_b", H.StraightLane(Lc * d_out + o, -Lc * d_out + o, **kw))
+    y_top = max(A[1] + geo.approach, 0.0)
+    for i in range(1, geo.lanes):
+        x = w / 2 + i * w
+        add(f"nb{i}_a", f"nb{i}_b", H.StraightLane([x, A[1] - geo.approach], [x, y_top], **kw))
+    stops = []
+    for i in range(geo.lanes):
+        x = -(w / 2 + i * w)
+        # the crossing road's far edge (r_out . p = cw) on this lane: its stop line
+        y_stop = (cw - r_out[0] * x) / r_out[1]
+        top = np.array([x, y_stop + geo.approach])
+        stop = np.array([x, y_stop])
+        end = np.array([x, y_stop - 2 * cw / abs(math.sin(delta)) - geo.exit])
+        add(f"sb{i}_a", f"sb{i}_s", H.StraightLane(top, stop, **kw), f"oncoming{i}_approach")
+        add(f"sb{i}_s", f"sb{i}_b", H.StraightLane(stop, end, **kw), f"oncoming{i}_through")
+        stops.append(geo.approach)
+    return net, names, stops
+
+
+class LeftTurnWorld:
+    """The unprotected left turn as a :class:`solvers.control.types.World` (see the module
+    docstring). ``LeftTurnWorld(geometry="g2", noise_std=0.5)`` or with a
+    :class:`LeftTurnOptions`."""
+
+    name = "left-turn"
+
+    def __init__(self, options: LeftTurnOptions | None = None, **kw):
+        if options is not None and kw:
+            raise SpecError("left-turn", "give either options or keyword options, not both")
+        self.options = (
+            options if options is not None else build_options(LeftTurnOptions, "left-turn", kw)
+        )
+        o = self.options
+        self.geometry = o.intersection
+        self.dt = float(o.dt)
+        self.max_steps = int(o.max_steps)
+        self.vehicle = VehicleModel.highway()
+        self.n_agents = 2
+        self.radii = np.full(2, float(o.radius))
+        self.network, names, self._stops = build_network(self.geometry)
+        self.road_map = RoadMap.from_highway(self.network, step=0.5, names=names)
+        self.ego_route_ids = ("ego_approach", "ego_turn", "ego_exit")
+        self.ego_route = self.road_map.route(self.ego_route_ids)
+        rm = self.road_map
+        self._s_goal = rm.lane("ego_approach").length + rm.lane("ego_turn").length + o.goal_distance
+        goal = rm.lane("ego_exit").point(o.goal_distance)
+        self.ego_task = rm.task(self.ego_route_ids, n_points=o.n_path, radius=o.radius, goal=goal)
+        self._zones = []
+        for i in range(self.geometry.lanes):
+            route = rm.route((f"oncoming{i}_approach", f"oncoming{i}_through"))
+            zone = rm.conflict_zone(self.ego_route, route, clearance=CLEARANCE)
+            if zone is None:  # pragma: no cover - the turn always crosses the oncoming lanes
+                raise SpecError("left-turn.geometry", f"the turn misses oncoming lane {i}")
+            self._zones.append((route, zone))
+        self.sensor = Sensor(1, o.noise_std, o.dropout_prob, o.dropout_burst)
+        self._ready = False
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, seed: int) -> Observation:
+        H = hw()
+        o = self.options
+        g_scene, g_char, g_sense = seeds(seed, 3)
+        geo = self.geometry
+        self.lane_i = int(g_scene.integers(geo.lanes))
+        self.other_route, self.conflict = self._zones[self.lane_i]
+        zone: ConflictZone = self.conflict
+        d_e = float(g_scene.uniform(*o.ego_distance))
+        v_e = float(g_scene.uniform(*o.ego_speed))
+        d_o = float(g_scene.uniform(*o.other_distance))
+        self.character = o.character or Character.draw(
+            g_char,
+            o.aggressiveness,
+            tuple(f * geo.speed_limit for f in o.desired_speed),
+            o.reaction,
+        )
+        ch = self.character
+        self.road = H.Road(
+            network=self.network, np_random=np.random.RandomState(int(g_scene.integers(2**31)))
+        )
+        s_e = max(zone.a[0] - LENGTH / 2 - d_e, 0.0)
+        pe, he = _pose(self.ego_route, s_e)
+        self.ego = H.Vehicle(self.road, pe, heading=he, speed=v_e)
+        s_o = max(zone.b[0] - LENGTH / 2 - d_o, 0.0)
+        po, ho = _pose(self.other_route, s_o)
+        app = (f"sb{self.lane_i}_a", f"sb{self.lane_i}_s", 0)
+        thr = (f"sb{self.lane_i}_s", f"sb{self.lane_i}_b", 0)
+        drv = H.Driver(
+            self.road,
+            po,
+            heading=ho,
+            speed=min(ch.desired_speed, self.road.network.get_lane(app).speed_limit),
+            target_lane_index=app,
+            target_speed=ch.desired_speed,
+            route=[app, thr],
+            enable_lane_change=False,
+            timer=0.0,
+        )
+        drv.TIME_WANTED = 2.0 - ch.aggressiveness
+        drv.COMFORT_ACC_MAX = 2.0 + 2.0 * ch.aggressiveness
+        self.driver = drv
+        self.road.vehicles = [self.ego, drv]
+        # the wait point: half a length before the zone, or the stop line if that comes first
+        self._s_wait = min(self._stops[self.lane_i], zone.b[0] - LENGTH / 2 - 0.5)
+        # IDM stops a jam distance (DISTANCE_WANTED) behind a standing obstacle
+        self._stop_obstacle = H.Obstacle(
+            self.road, _pose(self.other_route, self._s_wait + drv.DISTANCE_WANTED, extend=True)[0]
+        )
+        self.sensor.reset(g_sense)
+        self.t, self.k = 0.0, 0
+        self.latch = Latch()
+        self.committed = False
+        self.decision = "go"
+        self.decisions: list[str] = []
+        self._ego_seen: list[tuple[float, float]] = []
+        self._ready = True
+        self._decide()
+        return self._observe()
+
+    def step(self, command: np.ndarray) -> Observation:
+        if not self._ready:
+            raise SpecError("left-turn", "call reset(seed) before step(command)")
+        u = np.asarray(command, dtype=float).reshape(-1)
+        if u.shape != (2,) or not np.all(np.isfinite(u)):
+            raise SpecError("command", f"expected 2 finite numbers (a, delta), got {command!r}")
+        self.ego.act({"acceleration": float(u[0]), "steering": float(u[1])})
+        self.road.act()
+        self.road.step(self.dt)
+        self.t = (self.k + 1) * self.dt
+        self.k += 1
+        self._check()
+        self._decide()
+        return self._observe()
+
+    # ------------------------------------------------------------------ queries
+    def truth(self) -> np.ndarray:
+        return np.array(
+            [[v.position[0], v.position[1], v.speed, v.heading] for v in (self.ego, self.driver)],
+            dtype=float,
+        )
+
+    def tasks(self) -> list[AgentTask]:
+        rm = self.road_map
+        i = self.lane_i
+        other = rm.task(
+            (f"oncoming{i}_approach", f"oncoming{i}_through"),
+            n_points=self.options.n_path,
+            radius=self.options.radius,
+            speed=self.character.desired_speed,
+        )
+        return [self.ego_task, other]
+
+    def outcome(self) -> str:
+        return self.latch.value
+
+    def progress(self) -> float:
+        """Arc length (m) of the ego along its route."""
+        return float(project_to_polyline(self.ego.position[None], self.ego_route)[0][0])
+
+    def info(self) -> dict:
+        """The oncoming driver's hidden state (for metrics and tests, never for planners)."""
+        return dict(
+            decision=self.decision,
+            committed=self.committed,
+            character=self.character,
+            lane=self.lane_i,
+            geometry=self.geometry.name,
+        )
+
+    def set_state(self, agent: int, state: np.ndarray) -> None:
+        """Place agent ``agent`` at ``(x, y, v, theta)`` (tests, hand-made situations)."""
+        check_number("agent", agent, lo=0, hi=self.n_agents - 1, integer=True)
+        x = np.asarray(state, dtype=float).reshape(4)
+        veh = (self.ego, self.driver)[agent]
+        veh.position = x[:2].copy()
+        veh.speed, veh.heading = float(x[2]), float(x[3])
+        veh.on_state_update()
+
+    # ------------------------------------------------------------------ internals
+    def _observe(self) -> Observation:
+        x = self.truth()
+        return Observation(t=self.t, ego=x[0].copy(), others=self.sensor.measure(x[1:, :2]))
+
+    def _check(self) -> None:
+        o = self.options
+        if o.collision == "rectangles":
+            hit = bool(self.ego.crashed)
+        else:
+            hit = circles_overlap(self.truth()[:, :2], self.radii)
+        if hit:
+            self.latch.set("collision")
+        pos = self.ego.position[None]
+        if self.road_map.distance_to_road(pos)[0] > o.off_road_margin:
+            self.latch.set("off_road")
+        s, d = project_to_polyline(pos, self.ego_route)
+        if s[0] >= self._s_goal - 1e-9 and d[0] <= self.geometry.lane_width:
+            self.latch.set("success")
+        if self.k >= self.max_steps:
+            self.latch.set("timeout")
+
+    def _decide(self) -> None:
+        """The oncoming driver's go / yield decision (module docstring)."""
+        ch, drv, zone = self.character, self.driver, self.conflict
+        s_e = self.progress()
+        self._ego_seen.append((s_e, float(self.ego.speed)))
+        lag = int(round(ch.reaction / self.dt))
+        s_seen, v_seen = self._ego_seen[max(0, len(self._ego_seen) - 1 - lag)]
+        s_o = float(project_to_polyline(drv.position[None], self.other_route)[0][0])
+        v_o = float(drv.speed)
+        if not self.committed:
+            dist = self._s_wait - s_o
+            late = self.decision == "go" and v_o * v_o / (2 * BRAKE) > dist
+            self.committed = dist <= 0.0 or late
+        if not self.committed:
+            t_e_reach, t_e_clear = zone_times(s_seen, v_seen, zone.a, LENGTH / 2)
+            t_o_clear = time_to_cover(
+                zone.b[1] + LENGTH / 2 - s_o, v_o, drv.COMFORT_ACC_MAX, ch.desired_speed
+            )
+            m = ch.margin(*self.options.margin)
+            self.decision = "go" if gap_decision(t_o_clear, t_e_reach, t_e_clear, m) else "yield"
+        drv.stop_obstacle = None if self.decision == "go" else self._stop_obstacle
+        self.decisions.append(self.decision)
+
+
+def _pose(route: np.ndarray, s: float, extend: bool = False) -> tuple[np.ndarray, float]:
+    """Point and heading of a polyline at arc length ``s`` (``extend``: beyond its end along
+    the last segment)."""
+    seg = np.diff(route, axis=0)
+    L = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    k = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1))
+    if not extend:
+        s = min(s, cum[-1])
+    p = route[k] + (s - cum[k]) / L[k] * seg[k]
+    return p.astype(float), float(math.atan2(seg[k, 1], seg[k, 0]))

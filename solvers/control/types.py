@@ -1,0 +1,169 @@
+"""The closed loop's vocabulary: observations, estimates, plans, commands and the four roles.
+
+Every planning period (``dt``, 0.1 s by default) the loop runs, in this order::
+
+    obs = world.reset(seed)                        # or world.step(command)
+    est = estimator.update(obs)                    # filtered states of the observed agents
+    plan = planner.plan(obs, est)                  # the ego's reference trajectory
+    command = tracker.control(obs.ego, plan, obs.t)  # what the ego's actuators get
+
+Agent ``0`` is the ego (the SDV / robot): it knows its own state exactly. The other
+agents ``1..N-1`` are observed as noisy positions (``NaN`` rows while they drop out).
+
+State convention of every plan and estimate: the unicycle state ``(x, y, v, theta)`` of
+:mod:`epo_casadi.dynamics` (positions in metres in the world frame, speed in m/s,
+heading in rad), whatever vehicle model the world simulates. Commands are in the
+world's vehicle model (:class:`VehicleModel`): ``(a, omega)`` for a unicycle,
+``(a, delta)`` (steering angle) for a bicycle.
+
+No torch here (the network planner lives in :mod:`learning.control` and implements
+:class:`Planner`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = [
+    "AgentTask",
+    "Observation",
+    "Estimate",
+    "Plan",
+    "Command",
+    "Estimator",
+    "Planner",
+    "Tracker",
+    "World",
+]
+
+
+@dataclass(frozen=True)
+class AgentTask:
+    """What an agent is trying to do, as a game reads it.
+
+    ``path``: ``(P, 2)`` reference polyline (lane centre line) in the world frame;
+    ``speed``: desired speed on it (m/s, e.g. the lane's speed limit);
+    ``goal``: ``(2,)`` end point; ``radius``: collision radius (m).
+    The world gives the ego's task to every planner and the others' true tasks only to
+    the oracle.
+    """
+
+    path: np.ndarray
+    speed: float
+    goal: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What the ego perceives at time ``t``.
+
+    ``ego``: ``(4,)`` exact ego state ``(x, y, v, theta)``;
+    ``others``: ``(N-1, 2)`` measured positions of the other agents (``NaN`` rows while
+    an agent is not observed).
+    """
+
+    t: float
+    ego: np.ndarray
+    others: np.ndarray
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Filtered states of the other agents at the observation's time.
+
+    ``states``: ``(N-1, 4)`` ``(x, y, v, theta)``; ``covariances``: ``(N-1, 4, 4)``;
+    ``history``: ``(N-1, H+1, 4)`` filtered states of steps ``k-H .. k``, oldest first, the
+    last row being ``states`` (what a network consumes; the datasets' ``history`` layout,
+    ``H = 18`` in :mod:`scenarios.rpi`); ``valid``: ``(N-1, H+1)`` where the history is backed
+    by measurements (not only prediction or the backward extrapolation before a track
+    started). An agent not measured yet has ``NaN`` states and covariances.
+    """
+
+    states: np.ndarray
+    covariances: np.ndarray
+    history: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The ego's reference from time ``t0``: states at ``t0 + dt * (k + 1)``.
+
+    ``states``: ``(K, 4)`` unicycle states; ``controls``: ``(K, 2)`` unicycle controls
+    ``(a, omega)`` that produce them from the state at ``t0``; ``predictions``:
+    ``(M, N, K, 4)`` joint futures of all agents per mode (agent 0 = ego) or ``None``;
+    ``probabilities``: ``(M,)`` or ``None``. ``ok`` is False when the planner failed
+    (non-finite, solver failure); ``message`` says what happened; ``info`` holds extras
+    (solver status, iterations, latency).
+    """
+
+    t0: float
+    dt: float
+    states: np.ndarray
+    controls: np.ndarray
+    predictions: np.ndarray | None = None
+    probabilities: np.ndarray | None = None
+    ok: bool = True
+    message: str = "ok"
+    info: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Command:
+    """What the ego's actuators get: ``value`` ``(2,)`` in the world's vehicle model;
+    ``fallback`` is True when a failure made the tracker brake instead; ``info`` holds
+    extras (QP status, solve time)."""
+
+    value: np.ndarray
+    fallback: bool = False
+    info: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    def reset(self, obs: Observation, dt: float) -> Estimate: ...
+
+    def update(self, obs: Observation) -> Estimate: ...
+
+
+@runtime_checkable
+class Planner(Protocol):
+    def reset(self, world: World) -> None: ...
+
+    def plan(self, obs: Observation, est: Estimate) -> Plan: ...
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    def reset(self, world: World) -> None: ...
+
+    def control(self, ego: np.ndarray, plan: Plan, t: float) -> Command: ...
+
+
+@runtime_checkable
+class World(Protocol):
+    """A simulated scene. ``dt``: the planning period (s); ``vehicle``: the ego's model
+    (:class:`solvers.control.vehicle.VehicleModel`); ``ego_task``: the ego's
+    :class:`AgentTask`; ``n_agents``; ``radii`` ``(N,)``; ``max_steps``."""
+
+    dt: float
+
+    def reset(self, seed: int) -> Observation: ...
+
+    def step(self, command: np.ndarray) -> Observation: ...
+
+    def truth(self) -> np.ndarray:
+        """``(N, 4)`` true unicycle states of every agent (metrics, tests)."""
+        ...
+
+    def tasks(self) -> list[AgentTask]:
+        """True tasks of every agent (the oracle's privilege)."""
+        ...
+
+    def outcome(self) -> str:
+        """``"running"``, ``"success"``, ``"collision"``, ``"timeout"`` or ``"off_road"``."""
+        ...
