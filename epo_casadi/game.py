@@ -383,6 +383,10 @@ class PotentialGame:
         "traj_residual",
         "traj_agent_costs",
     )
+    #: pair count from which a pair feature is built as one function per group of pairs
+    PAIR_FUNCTION_MIN = 16
+    #: pair count from which the build shows a progress bar (on a terminal only)
+    PAIR_PROGRESS_MIN = 300
 
     def __init__(self, spec: GameSpec):
         if not isinstance(spec, GameSpec):
@@ -476,6 +480,53 @@ class PotentialGame:
             cols.append(ca.vertcat(*traj))
         return ca.vertcat(*cols)
 
+    def _pair_residuals(self, pf: PairFeature, pairs, ctxs: list[AgentContext]) -> list:
+        """Unweighted residuals ``d`` of ``pf`` for every pair, in the order of ``pairs``.
+
+        Below :attr:`PAIR_FUNCTION_MIN` pairs each pair's expression is built by the
+        feature itself. From there on, pairs are grouped by what the feature can see
+        besides the trajectories (dynamics, radii, reference sizes); the feature builds
+        its expression once per group, as a function of symbolic trajectories, and that
+        function is evaluated on each pair's trajectories. CasADi replays the same
+        operations, so the expressions are the same either way; only the Python work per
+        pair shrinks (1,225 pairs of 50 agents: ~20x less). Long builds show a progress
+        bar on a terminal (tqdm).
+        """
+        if len(pairs) < self.PAIR_FUNCTION_MIN:
+            return [pf.residual(ctxs[i], ctxs[j]) for i, j in pairs]
+        fns: dict = {}
+
+        def signature(c: AgentContext):
+            return (c.dynamics, float(c.radius), tuple((n, v.shape) for n, v in c.refs.items()))
+
+        def pair_function(ca_: AgentContext, cb: AgentContext) -> ca.Function:
+            key = (signature(ca_), signature(cb))
+            if key not in fns:
+                syms, ins = [], []
+                for tag, c in (("a", ca_), ("b", cb)):
+                    X = ca.SX.sym(f"X_{tag}", *c.X.shape)
+                    U = ca.SX.sym(f"U_{tag}", *c.U.shape)
+                    refs = {n: ca.SX.sym(f"{n}_{tag}", *v.shape) for n, v in c.refs.items()}
+                    syms.append(AgentContext(c.dynamics, X, U, c.dt, refs, c.radius))
+                    ins += [X, U, *refs.values()]
+                fns[key] = ca.Function(f"pair_{pf.key}", ins, [pf.residual(*syms)])
+            return fns[key]
+
+        from tqdm.auto import tqdm
+
+        out = []
+        bar = tqdm(
+            pairs,
+            desc=f"building {pf.key} pair terms",
+            unit="pair",
+            disable=None if len(pairs) >= self.PAIR_PROGRESS_MIN else True,
+            leave=False,
+        )
+        for i, j in bar:
+            a, b = ctxs[i], ctxs[j]
+            out.append(pair_function(a, b)(a.X, a.U, *a.refs.values(), b.X, b.U, *b.refs.values()))
+        return out
+
     def _build(self):
         u = ca.SX.sym("u", self.n_u)
         p = ca.SX.sym("p", self.n_p)
@@ -501,9 +552,10 @@ class PotentialGame:
                 blocks.append(r)
                 row += r.shape[0]
         for pf in self.spec.pair_features:
-            for i, j in self.spec.pairs_of(pf):
+            pairs = self.spec.pairs_of(pf)
+            for (i, j), d in zip(pairs, self._pair_residuals(pf, pairs, ctxs), strict=True):
                 nm = f"w.{self.agent_names[i]}-{self.agent_names[j]}.{pf.key}"
-                r = p[self.params[nm].start] * pf.residual(ctxs[i], ctxs[j])
+                r = p[self.params[nm].start] * d
                 terms.append(
                     Term(
                         len(terms),
@@ -574,6 +626,17 @@ class PotentialGame:
         except KeyError:
             value = self._derived[key] = factory()
             return value
+
+    def jacobian_sparsity(self) -> ca.Sparsity:
+        """Structural sparsity of ``J = dr/du`` (``n_r x n_u``), without building ``J``.
+
+        The same pattern as the output of :meth:`function` ``("jacobian")``, found by
+        sparsity propagation (``n_u / 64`` sweeps) instead of a symbolic Jacobian, whose
+        build grows with ``n_u`` times the graph (minutes for 50 agents).
+        """
+        if "jacobian" in self._cache:
+            return self._cache["jacobian"].sparsity_out(0)
+        return self.cached(("jacobian_sparsity",), lambda: ca.jacobian_sparsity(self._r, self._u))
 
     def functions(self) -> dict[str, ca.Function]:
         return {n: self.function(n) for n in self.FUNCTIONS}

@@ -228,7 +228,7 @@ def breakdown_table(
 def jacobian_pattern(game: PotentialGame) -> np.ndarray:
     """Boolean ``(n_r, n_u)`` array of the structural nonzeros of ``J = dr/du``."""
     game = _check_game(game)
-    sp = game.function("jacobian").sparsity_out(0)
+    sp = game.jacobian_sparsity()
     rows, cols = sp.get_triplet()
     out = np.zeros((game.n_r, game.n_u), dtype=bool)
     out[np.asarray(rows, dtype=int), np.asarray(cols, dtype=int)] = True
@@ -243,7 +243,10 @@ def jacobian_sparsity(game: PotentialGame) -> dict:
     its control columns). Structural means "may be nonzero": a soft bound or collision
     term that is inactive at some ``u`` still counts.
     """
-    pat = jacobian_pattern(game)
+    return _sparsity(game, jacobian_pattern(game))
+
+
+def _sparsity(game: PotentialGame, pat: np.ndarray) -> dict:
     n_r, n_u = pat.shape
     nnz = int(pat.sum())
     return {
@@ -282,17 +285,18 @@ def spy_text(game: PotentialGame, width: int = 60) -> str:
             if c + j < width and (j == 0 or head[c + j] == " "):
                 head[c + j] = ch
     lines = [f"{'term':<{lw}} {''.join(head)}"]
+    cell_w = np.diff(edges)
+    nonempty = cell_w > 0
     for t, lab in zip(game.terms, labels, strict=True):
-        block = pat[t.rows]
-        cells = []
-        for c in range(width):
-            sub = block[:, edges[c] : edges[c + 1]]
-            frac = sub.mean() if sub.size else 0.0
-            cells.append(
-                " " if frac == 0 else "." if frac <= 1 / 3 else ":" if frac <= 2 / 3 else "#"
-            )
+        # share of nonzeros per (term rows x cell columns) block, one numpy pass per term
+        counts = np.zeros(width)
+        col = pat[t.rows].sum(axis=0)
+        counts[nonempty] = np.add.reduceat(col, edges[:-1][nonempty])
+        size = t.size * cell_w
+        frac = np.divide(counts, size, out=np.zeros(width), where=size > 0)
+        cells = [" " if f == 0 else "." if f <= 1 / 3 else ":" if f <= 2 / 3 else "#" for f in frac]
         lines.append(f"{lab:<{lw}} {''.join(cells)}")
-    sp = jacobian_sparsity(game)
+    sp = _sparsity(game, pat)
     lines.append(
         f"J = dr/du: {sp['shape'][0]} x {sp['shape'][1]}, {sp['nnz']} structural nonzeros "
         f"(density {sp['density']:.3f}); columns: controls, agent-major then time"

@@ -403,6 +403,17 @@ class GameLayerFunction(torch.autograd.Function):
         dtype = torch.promote_types(p.dtype, u_init.dtype)
         device = p.device
         P, U0 = _to_numpy(p), _to_numpy(u_init)
+        if P.shape[0] == 0:  # an empty batch: empty outputs, nothing to solve
+            ctx.core, ctx.saved, ctx.P, ctx.ok = core, None, P, np.zeros(0, dtype=bool)
+            ctx.dtypes = (p.dtype, u_init.dtype)
+            ctx.devices = (p.device, u_init.device)
+            out_s = torch.zeros(0, dtype=torch.int64, device=device)
+            ctx.mark_non_differentiable(out_s)
+            return (
+                torch.zeros(0, game.n_u, dtype=dtype, device=device),
+                torch.zeros(0, game.n_x, dtype=dtype, device=device),
+                out_s,
+            )
         shape = tuple(batch_shape)
         if int(np.prod(shape)) != P.shape[0]:
             shape = (P.shape[0],)
@@ -429,6 +440,13 @@ class GameLayerFunction(torch.autograd.Function):
     def backward(ctx, g_u, g_x, _g_status):
         core = ctx.core
         B = ctx.P.shape[0]
+        if B == 0:  # an empty batch has empty gradients
+            gp = gu = None
+            if ctx.needs_input_grad[1]:
+                gp = torch.zeros(0, core.game.n_p, device=ctx.devices[0], dtype=ctx.dtypes[0])
+            if ctx.needs_input_grad[2]:
+                gu = torch.zeros(0, core.game.n_u, device=ctx.devices[1], dtype=ctx.dtypes[1])
+            return None, gp, gu, None
         gU = _to_numpy(g_u) if g_u is not None else np.zeros((B, core.game.n_u))
         gX = _to_numpy(g_x) if g_x is not None else None
         ok = ctx.ok[:, None]

@@ -238,7 +238,8 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
         lines.append(
             f"  Nash certificate: {'passes' if c['ok'] else 'FAILS'} (max |dC_i/du_i| "
             f"{fmt_number(_largest(c['stationarity']), '.3g')}, max best-response gap "
-            f"{fmt_number(_largest(c['best_response_gap']), '.3g')})"
+            f"{fmt_number(_largest(c['best_response_gap']), '.3g')}"
+            + (f"; {c['time_s']:.3g} s)" if c.get("time_s") is not None else ")")
         )
     elif data.get("status") == Status.NONFINITE.value:
         lines.append("  Nash certificate: not computed (NaN or inf in the solution)")
