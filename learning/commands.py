@@ -149,7 +149,10 @@ def train_cmd(
         seed=seed,
         checkpoint_steps=checkpoint_steps,
     )
-    res = train(data, out, cfg, progress=progress, threads=threads)
+    from scenarios.dataset import sigterm_as_interrupt
+
+    with sigterm_as_interrupt():  # kill PID stops like Ctrl-C; the last checkpoint is kept
+        res = train(data, out, cfg, progress=progress, threads=threads)
     if res.history:
         last = res.history[-1]
         click.echo(
@@ -212,7 +215,13 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
 @click.argument("run", type=click.Path(path_type=Path))
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
 @click.option("--split", default="test", show_default=True, help="train, val or test.")
-@click.option("--index", type=int, default=0, show_default=True, help="Sample index in the split.")
+@click.option(
+    "--index",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Sample index in the split, 0 to its size - 1 (negative indices are refused).",
+)
 @click.option(
     "--out",
     "out",
@@ -255,15 +264,18 @@ def show_cmd(run, data, split, index, out, checkpoint):
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def pipeline_cmd(out, samples, epochs, seed, lr, workers, progress):
     """Generate a small RPI set, train ours and SC, evaluate with CV, draw predictions."""
+    from scenarios.dataset import sigterm_as_interrupt
+
     from .pipeline import run_pipeline
 
-    run_pipeline(
-        out,
-        samples=samples,
-        epochs=epochs,
-        seed=seed,
-        lr=lr,
-        workers=workers,
-        progress=progress,
-        echo=click.echo,
-    )
+    with sigterm_as_interrupt():  # kill PID stops like Ctrl-C: finished work is kept
+        run_pipeline(
+            out,
+            samples=samples,
+            epochs=epochs,
+            seed=seed,
+            lr=lr,
+            workers=workers,
+            progress=progress,
+            echo=click.echo,
+        )

@@ -45,7 +45,7 @@ import torch
 
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
-from scenarios.dataset import MANIFEST, DatasetError, SplitReader, read_manifest
+from scenarios.dataset import MANIFEST, DatasetError, SplitReader, check_indices, read_manifest
 
 __all__ = [
     "REQUIRED_FIELDS",
@@ -59,7 +59,8 @@ __all__ = [
 #: fields training and evaluation cannot do without
 REQUIRED_FIELDS = ("history", "future")
 #: fields used when present
-OPTIONAL_FIELDS = ("goals", "goal_candidates", "history_valid", "gt_mode")
+#: ``lanes``/``paths``/``vref``: map input and fixed game references (left-turn datasets)
+OPTIONAL_FIELDS = ("goals", "goal_candidates", "history_valid", "gt_mode", "lanes", "paths", "vref")
 
 
 def ground_truth(future, gt_mode=None):
@@ -92,7 +93,16 @@ def _rpi_game(recipe: dict) -> PotentialGame:
 
 
 #: scenario name (manifest ``scenario``) -> builder of its game from the manifest recipe
-GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {"rpi": _rpi_game}
+def _left_turn_game(recipe: dict) -> PotentialGame:
+    from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario
+
+    return LeftTurnScenario(LeftTurnRecipe.from_dict(recipe)).game
+
+
+GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {
+    "rpi": _rpi_game,
+    "left-turn": _left_turn_game,
+}
 
 
 def register_game(scenario: str, builder: Callable[[dict], PotentialGame]) -> None:
@@ -234,7 +244,7 @@ class SceneDataset(torch.utils.data.Dataset):
         if valid is None:
             valid = np.ones((n, self.history_steps), bool)
         out = {"history": np.ascontiguousarray(raw["history"], np.float32)}
-        for k in ("goals", "goal_candidates"):
+        for k in ("goals", "goal_candidates", "lanes", "paths", "vref"):
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)
@@ -245,12 +255,7 @@ class SceneDataset(torch.utils.data.Dataset):
         """Numpy arrays of the samples ``indices`` (any order): the batch fields but ``index``."""
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
         if self._arrays is not None:
-            n = len(self)
-            if idx.size and (idx.min() < -n or idx.max() >= n):
-                bad = int(idx[(idx < -n) | (idx >= n)][0])
-                raise SpecError(
-                    "index", f"expected an index in [0, {n}) for split {self.split!r}, got {bad}"
-                )
+            check_indices(idx, len(self), self.split)  # negatives refused, as in SplitReader
             return {k: v[idx] for k, v in self._arrays.items()}
         return self._prepare(self.reader.read(idx))
 
@@ -260,7 +265,7 @@ class SceneDataset(torch.utils.data.Dataset):
         a = self.read(idx)
         out = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in a.items()}
         out["gt"] = out["gt_states"][..., :2]
-        out["index"] = torch.from_numpy(np.where(idx < 0, idx + len(self), idx))
+        out["index"] = torch.from_numpy(idx.copy())
         return out
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:

@@ -69,7 +69,7 @@ def run_pipeline(
     ``model_overrides``: :class:`~learning.models.ModelConfig` fields (e.g. widths);
     ``workers``: generation processes (default: usable cores); ``threads``: torch threads.
     """
-    from scenarios.dataset import generate
+    from scenarios.dataset import check_output_dir, generate
     from scenarios.rpi import RPIRecipe, RPIScenario
 
     from .evaluate import evaluate
@@ -88,7 +88,7 @@ def run_pipeline(
             workers = max(1, len(os.sched_getaffinity(0)))
         except AttributeError:  # pragma: no cover - non-Linux
             workers = max(1, os.cpu_count() or 1)
-    out = Path(out_dir)
+    out = check_output_dir(out_dir)  # an existing file (or a path into one) is refused
     data_dir = out / "data"
     seconds: dict[str, float] = {}
     t_all = time.perf_counter()

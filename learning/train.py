@@ -20,13 +20,24 @@ A run directory (``out_dir``)::
 Checkpoints and resume
     A checkpoint is written at the end of every epoch (and every ``checkpoint_steps``
     optimizer steps, if set) to a temporary file, fsynced and renamed: a run killed at
-    any moment leaves the previous checkpoint intact. :func:`train` on a directory that
-    holds a checkpoint continues from it: same model, optimizer and RNG states, and the
-    batches of an epoch come from the permutation of ``(seed, epoch)``
-    (:meth:`learning.data.SceneDataset.order`), so the resumed run takes exactly the
-    steps the uninterrupted one would have taken (tested: equal next-step loss). Raising
+    any moment leaves the previous checkpoint intact. ``checkpoint.pt`` and ``best.pt``
+    carry a sha256 of their content (:data:`CHECKSUM_MAGIC` header line, then the
+    ``torch.save`` bytes); :func:`load_checkpoint` verifies it and refuses a changed or
+    damaged file naming it. A file written before checksums existed (a plain
+    ``torch.save`` zip) still loads, with a :class:`UncheckedCheckpointWarning`; the
+    next checkpoint of a resumed run is written with a checksum.
+    :func:`train` on a directory that holds a checkpoint continues from it: same model,
+    optimizer and RNG states, and the batches of an epoch come from the permutation of
+    ``(seed, epoch)`` (:meth:`learning.data.SceneDataset.order`), so the resumed run takes
+    exactly the steps the uninterrupted one would have taken (tested: equal next-step
+    loss). Raising
     ``epochs`` and running again trains on; a different setting (other than ``epochs``,
-    ``checkpoint_steps``, ``eval_batch_size``) or another dataset is refused.
+    ``checkpoint_steps``, ``eval_batch_size``) or another dataset is refused, and so is a
+    ``best.pt`` of another run (other model or settings). A directory that holds
+    ``best.pt`` or ``metrics.csv`` but no ``checkpoint.pt`` is refused rather than
+    trained from scratch over that history. A loss or parameters that become non-finite
+    stop the run with one line naming the epoch and step (and suggesting a lower
+    learning rate); the last checkpoint is kept.
 
 BatchNorm in the scene-probability decoder needs two values per channel: a training batch
 of one sample with ``modes = 1`` is skipped (only possible for a last, partial batch).
@@ -36,11 +47,13 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import io
 import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -48,7 +61,7 @@ from pathlib import Path
 import torch
 
 from epo_casadi.errors import EpoError, SpecError
-from scenarios.dataset import MANIFEST, DatasetError, fsync_replace
+from scenarios.dataset import MANIFEST, DatasetError, check_output_dir, fsync_replace
 
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
@@ -59,6 +72,7 @@ __all__ = [
     "CheckpointError",
     "TrainConfig",
     "TrainResult",
+    "UncheckedCheckpointWarning",
     "compute_loss",
     "load_checkpoint",
     "load_model",
@@ -67,6 +81,10 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = 1
+#: first bytes of a checkpoint file; 64 hex digits of the payload's sha256 and b"\n" follow
+CHECKSUM_MAGIC = b"EPO-CHECKPOINT sha256="
+_HEADER = len(CHECKSUM_MAGIC) + 65
+_ZIP_MAGIC = b"PK\x03\x04"  # a plain torch.save file (checkpoints before checksums)
 #: loss weights of the paper by model kind (imitation, goal, probability)
 PAPER_LOSS_WEIGHTS = {
     "epo": LossWeights(1.0, 0.1, 0.1),
@@ -84,6 +102,10 @@ class CheckpointError(EpoError):
     def __init__(self, where: str, message: str):
         self.where, self.message = where, message
         super().__init__(f"{where}: {message}")
+
+
+class UncheckedCheckpointWarning(UserWarning):
+    """A checkpoint written before checksums existed was loaded without verification."""
 
 
 def _int(name, v, lo):
@@ -176,8 +198,14 @@ class TrainResult:
 # checkpoints
 # --------------------------------------------------------------------------------------
 def _atomic_torch_save(obj, path: Path) -> None:
+    """``torch.save`` bytes behind a sha256 header line, fsynced and renamed into place."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    payload = buf.getvalue()
     tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
+    with open(tmp, "wb") as f:
+        f.write(CHECKSUM_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n")
+        f.write(payload)
     fsync_replace(tmp, path)
 
 
@@ -192,8 +220,32 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(str(p), "no such checkpoint file")
+    raw = p.read_bytes()
+    if raw.startswith(CHECKSUM_MAGIC):
+        digest, payload = raw[len(CHECKSUM_MAGIC) : _HEADER - 1], raw[_HEADER:]
+        if (
+            raw[_HEADER - 1 : _HEADER] != b"\n"
+            or hashlib.sha256(payload).hexdigest().encode() != digest
+        ):
+            raise CheckpointError(
+                str(p),
+                "sha256 checksum mismatch: the checkpoint is damaged or was changed after it "
+                "was written; restore it from a backup or train into a new directory",
+            )
+    elif raw.startswith(_ZIP_MAGIC):
+        payload = raw
+        warnings.warn(
+            f"{p}: written without a checksum (before checksums were added); loaded "
+            "unverified (checkpoints written from now on carry one)",
+            UncheckedCheckpointWarning,
+            stacklevel=2,
+        )
+    else:
+        raise CheckpointError(
+            str(p), "unreadable checkpoint (no checkpoint header: not written by epo train)"
+        )
     try:
-        ck = torch.load(p, map_location="cpu", weights_only=True)
+        ck = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many kinds for a damaged file
         msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
         raise CheckpointError(
@@ -213,6 +265,30 @@ def _checkpoint_config(ck: dict, where: str) -> TrainConfig:
         return TrainConfig.from_dict(ck["config"])
     except (SpecError, TypeError) as e:
         raise CheckpointError(f"{where}.config", str(e)) from None
+
+
+def _run_setting_diff(saved: dict, now: dict) -> str | None:
+    """First training setting (``model.kind``, ``seed``, ...) in which two configs differ."""
+    for k in now:
+        if k in RESUMABLE_CHANGES or saved.get(k) == now[k]:
+            continue
+        if k == "model" and isinstance(saved.get(k), dict):
+            sub = [j for j in now[k] if saved[k].get(j) != now[k][j]]
+            if sub:
+                return f"model.{sub[0]} ({saved[k].get(sub[0])!r}, run: {now[k][sub[0]]!r})"
+        return f"{k} ({saved.get(k)!r}, run: {now[k]!r})"
+    return None
+
+
+def _check_same_run(ck: dict, run_config: dict, path: Path) -> None:
+    """Refuse a checkpoint whose settings differ from its run directory's (another run's file)."""
+    diff = _run_setting_diff(_checkpoint_config(ck, str(path)).to_dict(), run_config)
+    if diff is not None:
+        raise CheckpointError(
+            str(path),
+            f"belongs to another run: its {diff} differs from the run's config.json; "
+            "copy back the run's own file or retrain",
+        )
 
 
 def check_game(saved: dict, game, where: str) -> None:
@@ -244,6 +320,13 @@ def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
         )
     ck = load_checkpoint(path)
     cfg = _checkpoint_config(ck, str(path))
+    info = d / "config.json"
+    if info.is_file():  # the run's own settings: a file copied from another run is refused
+        try:
+            run_config = TrainConfig.from_dict(json.loads(info.read_text())["train"]).to_dict()
+        except (ValueError, KeyError, TypeError, SpecError) as e:
+            raise CheckpointError(str(info), f"unreadable run settings ({e})") from None
+        _check_same_run(ck, run_config, path)
     check_game(ck["game"], game, str(path))
     model = build_model(cfg.model, game)
     try:
@@ -373,6 +456,30 @@ def _tensorboard(log_dir: Path, purge_step: int):
     return SummaryWriter(str(log_dir), purge_step=purge_step)
 
 
+def _diverged_error(epoch: int, step: int, lr: float, ck_path: Path, what: str) -> EpoError:
+    kept = "the last checkpoint is kept" if ck_path.exists() else "no checkpoint was written yet"
+    return EpoError(
+        f"train: the loss diverged at epoch {epoch + 1}, step {step} ({what} became "
+        f"non-finite); {kept}; try a lower learning rate than {lr:g} (--lr)"
+    )
+
+
+@contextlib.contextmanager
+def _diverged(epoch: int, step: int, lr: float, ck_path: Path, what: str):
+    """Turn the game layer's refusal of non-finite inputs into the divergence message.
+
+    Huge weights after a step with a huge learning rate decode to inf/NaN game weights,
+    which :class:`learning.layer.GameLayer` refuses; that message speaks of the layer's
+    options, which a user of ``epo train`` cannot act on.
+    """
+    try:
+        yield
+    except SpecError as e:
+        if getattr(e, "field", None) not in ("p", "u_init"):  # the layer's inputs only
+            raise
+        raise _diverged_error(epoch, step, lr, ck_path, what) from None
+
+
 # --------------------------------------------------------------------------------------
 # training
 # --------------------------------------------------------------------------------------
@@ -421,14 +528,24 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
         if len(val_ds) == 0:
             val_ds = None
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise CheckpointError(str(out), "exists and is not a directory")
+    try:
+        check_output_dir(out)
+    except DatasetError as e:
+        raise CheckpointError(e.where, e.message) from None
     out.mkdir(parents=True, exist_ok=True)
     ck_path, best_path = out / "checkpoint.pt", out / "best.pt"
     summary = game_summary(game)
     fingerprint = train_ds.fingerprint
 
     state = None
+    history_files = [f for f in (best_path, out / "metrics.csv") if f.exists()]
+    if not ck_path.exists() and history_files:
+        raise CheckpointError(
+            str(ck_path),
+            f"missing, but {' and '.join(f.name for f in history_files)} of an earlier run "
+            "exist and training from scratch would overwrite them; restore checkpoint.pt, "
+            "or train into a new directory",
+        )
     if ck_path.exists():
         state = load_checkpoint(ck_path)
         old = _checkpoint_config(state, str(ck_path)).to_dict()
@@ -445,6 +562,8 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 str(ck_path), f"holds a run trained on another dataset than {data_dir}"
             )
         check_game(state["game"], game, str(ck_path))
+        if best_path.exists():  # verified now, and refused if it belongs to another run
+            _check_same_run(load_checkpoint(best_path), cfg.to_dict(), best_path)
 
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model, game)
@@ -478,6 +597,9 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
             "directory": str(Path(data_dir).resolve()),
             **fingerprint,
             "counts": train_ds.manifest.get("counts"),
+            # shapes and meta (frame) of the samples: what a closed-loop planner rebuilds
+            "schema": {k: v["shape"] for k, v in train_ds.manifest["schema"].items()},
+            "meta": train_ds.manifest.get("meta", {}),
         },
         "game": summary,
         "parameters": count_parameters(model),
@@ -531,18 +653,18 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 n = int(batch["history"].shape[0])
                 if n * cfg.model.modes < 2:  # BatchNorm needs two values per channel
                     continue
-                res = model(batch)
+                with _diverged(epoch, step + 1, cfg.lr, ck_path, "the model's output"):
+                    res = model(batch)
                 parts = compute_loss(kind, res, batch["gt"], weights)
                 loss = parts["loss"]
                 if not torch.isfinite(loss):
-                    raise EpoError(
-                        f"train: the loss is not finite at epoch {epoch + 1}, step {step + 1} "
-                        f"(the last checkpoint is kept; try a lower lr than {cfg.lr})"
-                    )
+                    raise _diverged_error(epoch, step + 1, cfg.lr, ck_path, "the loss")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
                 step += 1
+                if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
+                    raise _diverged_error(epoch, step, cfg.lr, ck_path, "the weights")
                 vals = {k: v.item() for k, v in parts.items()}
                 for k in ("loss", "imitation", "probability", "goal"):
                     sums[k] = sums.get(k, 0.0) + vals[k] * n
@@ -582,7 +704,8 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 from .evaluate import evaluate_model
 
                 t1 = time.perf_counter()
-                vm = evaluate_model(model, val_ds, batch_size=cfg.eval_batch_size)
+                with _diverged(epoch, step, cfg.lr, ck_path, "the validation output"):
+                    vm = evaluate_model(model, val_ds, batch_size=cfg.eval_batch_size)
                 row.update({f"val_{k}": vm[k] for k in METRICS})
                 row["val_seconds"] = round(time.perf_counter() - t1, 3)
             else:

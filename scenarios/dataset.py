@@ -29,7 +29,10 @@ Crash safety and resume
     sha256, to ``manifest.json`` (also written to a temporary file and renamed). A
     generation killed at any point and started again with the same scenario, recipe and
     seed keeps every shard listed in the manifest whose checksum still matches, removes
-    temporary files, and recomputes the rest: nothing is lost or duplicated.
+    temporary files, and recomputes the rest: nothing is lost or duplicated. Readers
+    (:class:`SplitReader`, :func:`load_split`) check a shard's sha256 when they open it
+    (:func:`check_shard`, cached per file version), and :func:`read_manifest` checks the
+    manifest's schema (:func:`check_manifest`).
 
 Manifest (``format_version`` 1), JSON::
 
@@ -47,7 +50,9 @@ Engines
     ``local``: a process pool (``concurrent.futures``, spawn context; one worker runs in
     the calling process). ``dask``: a ``dask.distributed`` client (an existing one, a
     scheduler address, or a new ``LocalCluster``). Both call the same module-level
-    :func:`run_unit`, so a cluster produces byte-identical shards.
+    :func:`run_unit`, so a cluster produces byte-identical shards. Pool workers end with
+    the process that started them, also after ``kill -9`` (:func:`_worker_init`); an
+    interrupt (Ctrl-C, or SIGTERM inside :func:`sigterm_as_interrupt`) stops them at once.
 """
 
 from __future__ import annotations
@@ -58,6 +63,10 @@ import hashlib
 import json
 import math
 import os
+import re
+import signal
+import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -85,6 +94,10 @@ __all__ = [
     "assign_splits",
     "run_unit",
     "sha256_file",
+    "check_manifest",
+    "check_shard",
+    "check_output_dir",
+    "sigterm_as_interrupt",
 ]
 
 FORMAT_VERSION = 1
@@ -142,6 +155,11 @@ class Scenario:
     @property
     def split_fractions(self) -> tuple[float, float, float]:
         return (0.8, 0.1, 0.1)
+
+    def split_units(self, seed: int) -> dict[str, list[int]]:
+        """Split name -> sorted unit indices (default: :func:`assign_splits`, a seeded
+        permutation by :attr:`split_fractions`; a scenario may split by construction)."""
+        return assign_splits(seed, self.n_units, self.split_fractions)
 
     def schema(self) -> dict[str, FieldSpec]:
         raise NotImplementedError
@@ -312,7 +330,10 @@ def write_shard(
 
 
 def read_manifest(directory: str | os.PathLike) -> dict:
-    """The manifest of a dataset directory; :class:`DatasetError` if missing or unreadable."""
+    """The manifest of a dataset directory, schema-checked (:func:`check_manifest`).
+
+    :class:`DatasetError` if it is missing, unreadable or malformed (naming the field).
+    """
     d = Path(directory)
     if not d.is_dir():
         raise DatasetError(str(d), "no such dataset directory")
@@ -325,13 +346,145 @@ def read_manifest(directory: str | os.PathLike) -> dict:
         m = json.loads(p.read_text())
     except (OSError, ValueError) as e:
         raise DatasetError(str(p), f"unreadable manifest ({e})") from None
-    if not isinstance(m, dict) or m.get("format_version") != FORMAT_VERSION:
-        got = m.get("format_version") if isinstance(m, dict) else None
-        raise DatasetError(f"{p}.format_version", f"expected {FORMAT_VERSION}, got {got!r}")
-    for key in ("scenario", "recipe", "seed", "schema", "splits", "shards", "counts", "complete"):
-        if key not in m:
-            raise DatasetError(f"{p}.{key}", "missing")
+    check_manifest(m, str(p))
     return m
+
+
+def _short(v: Any, limit: int = 60) -> str:
+    r = repr(v)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def _is_int(v: Any, lo: int = 0) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _is_file_name(v: Any) -> bool:
+    """A plain file name inside the dataset directory (no path, not hidden, not a temp)."""
+    return (
+        isinstance(v, str)
+        and v != ""
+        and "/" not in v
+        and "\\" not in v
+        and "\x00" not in v
+        and not v.startswith(".")
+    )
+
+
+def check_manifest(m: Any, where: str = MANIFEST) -> None:
+    """Check the manifest's schema (module docstring); :class:`DatasetError` names the field.
+
+    Every field a reader or the generator uses is checked for its type and range, so a
+    hand-edited or damaged manifest gives one line naming the field, never a traceback.
+    """
+    if not isinstance(m, dict):
+        raise DatasetError(where, f"expected a JSON object, got {type(m).__name__}")
+    if m.get("format_version") != FORMAT_VERSION:
+        raise DatasetError(
+            f"{where}.format_version",
+            f"expected {FORMAT_VERSION}, got {_short(m.get('format_version'))}",
+        )
+    keys = ("scenario", "recipe", "seed", "n_units", "units_per_shard", "schema", "splits")
+    for key in (*keys, "shards", "counts", "complete"):
+        if key not in m:
+            raise DatasetError(f"{where}.{key}", "missing")
+
+    def bad(key: str, expected: str, got: Any) -> DatasetError:
+        return DatasetError(f"{where}.{key}", f"expected {expected}, got {_short(got)}")
+
+    if not isinstance(m["scenario"], str) or not m["scenario"]:
+        raise bad("scenario", "a non-empty string", m["scenario"])
+    if not isinstance(m["recipe"], dict):
+        raise bad("recipe", "an object", m["recipe"])
+    if "meta" in m and not isinstance(m["meta"], dict):
+        raise bad("meta", "an object", m["meta"])
+    if not _is_int(m["seed"]):
+        raise bad("seed", "an integer >= 0", m["seed"])
+    n_units = m["n_units"]
+    if not _is_int(n_units, 1):
+        raise bad("n_units", "an integer >= 1", n_units)
+    if not _is_int(m["units_per_shard"], 1):
+        raise bad("units_per_shard", "an integer >= 1", m["units_per_shard"])
+    if not isinstance(m["complete"], bool):
+        raise bad("complete", "true or false", m["complete"])
+    schema = m["schema"]
+    if not isinstance(schema, dict) or not schema:
+        raise bad("schema", "a non-empty object of fields", schema)
+    for k, v in schema.items():
+        if not isinstance(v, dict):
+            raise bad(f"schema.{k}", "an object with shape and dtype", v)
+        shape = v.get("shape")
+        if not isinstance(shape, list) or not all(_is_int(x) for x in shape):
+            raise bad(f"schema.{k}.shape", "a list of integers >= 0", shape)
+        try:
+            np.dtype(v.get("dtype"))
+        except TypeError:
+            raise bad(f"schema.{k}.dtype", "a numpy dtype name", v.get("dtype")) from None
+        if not isinstance(v.get("dtype"), str):
+            raise bad(f"schema.{k}.dtype", "a numpy dtype name", v.get("dtype"))
+    splits = m["splits"]
+    if not isinstance(splits, dict):
+        raise bad("splits", f"an object with keys {list(SPLITS)}", splits)
+    for s in SPLITS:
+        sp = splits.get(s)
+        if not isinstance(sp, dict):
+            raise bad(f"splits.{s}", "an object with units and shards", sp)
+        units = sp.get("units")
+        if not isinstance(units, list) or not all(_is_int(u) and u < n_units for u in units):
+            raise bad(f"splits.{s}.units", f"a list of unit indices in [0, {n_units})", units)
+        names = sp.get("shards")
+        if not isinstance(names, list) or not all(_is_file_name(n) for n in names):
+            raise bad(f"splits.{s}.shards", "a list of shard file names", names)
+    shards = m["shards"]
+    if not isinstance(shards, dict):
+        raise bad("shards", "an object of shard name -> {split, units, samples, sha256}", shards)
+    for name, info in shards.items():
+        if not _is_file_name(name):
+            raise bad("shards", "plain shard file names as keys", name)
+        key = f"shards[{name!r}]"
+        if not isinstance(info, dict):
+            raise bad(key, "an object with split, units, samples and sha256", info)
+        if info.get("split") not in SPLITS:
+            raise bad(f"{key}.split", f"one of {list(SPLITS)}", info.get("split"))
+        units = info.get("units")
+        if not isinstance(units, list) or not all(_is_int(u) and u < n_units for u in units):
+            raise bad(f"{key}.units", f"a list of unit indices in [0, {n_units})", units)
+        if not _is_int(info.get("samples")):
+            raise bad(f"{key}.samples", "an integer >= 0", info.get("samples"))
+        digest = info.get("sha256")
+        if not isinstance(digest, str) or not re.fullmatch(r"[0-9a-f]{64}", digest):
+            raise bad(f"{key}.sha256", "64 lowercase hex digits", digest)
+    counts = m["counts"]
+    if not isinstance(counts, dict) or not all(_is_int(counts.get(s)) for s in SPLITS):
+        raise bad("counts", f"an object of integers >= 0 for {list(SPLITS)}", counts)
+
+
+#: (real path, device, inode, size, mtime_ns) -> sha256 of the shard, per process
+_SHARD_DIGESTS: dict[tuple, str] = {}
+
+
+def check_shard(path: str | os.PathLike, sha256: str) -> None:
+    """Refuse a shard whose sha256 differs from the manifest's (:class:`DatasetError`).
+
+    Readers call this when they open a shard. The digest is cached per file identity,
+    size and modification time, so opening the same unchanged file again costs one
+    ``stat``; a file changed since (a new mtime or size) is hashed again.
+    """
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except OSError as e:
+        raise DatasetError(str(p), f"cannot open shard ({e.strerror or e})") from None
+    key = (os.path.realpath(p), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    digest = _SHARD_DIGESTS.get(key)
+    if digest is None:
+        digest = _SHARD_DIGESTS[key] = sha256_file(p)
+    if digest != sha256:
+        raise DatasetError(
+            str(p),
+            "sha256 checksum differs from manifest.json (file changed or corrupt); "
+            "run `epo generate` with the same options to regenerate it",
+        )
 
 
 # --------------------------------------------------------------------------------------
@@ -356,7 +509,7 @@ class GenerateReport:
 
 
 def _new_manifest(scenario: Scenario, seed: int) -> dict:
-    splits = assign_splits(seed, scenario.n_units, scenario.split_fractions)
+    splits = scenario.split_units(seed)
     shards = plan_shards(splits, scenario.units_per_shard)
     return {
         "format_version": FORMAT_VERSION,
@@ -420,6 +573,73 @@ def _single_threaded_children():
                 os.environ[k] = v
 
 
+def check_output_dir(path: str | os.PathLike) -> Path:
+    """``path`` as a directory to create or reuse; :class:`DatasetError` if it cannot be one.
+
+    Refuses an existing file at ``path`` and a path whose nearest existing ancestor is a
+    file (``--out notes.txt/run``), before anything is written.
+    """
+    p = Path(path)
+    for a in (p, *p.parents):
+        if a.exists() or a.is_symlink():
+            if not a.is_dir():
+                if a == p:
+                    raise DatasetError(str(p), "exists and is not a directory")
+                raise DatasetError(str(p), f"cannot create a directory here: {a} is a file")
+            break
+    return p
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM raises :class:`KeyboardInterrupt` like SIGINT (main thread only).
+
+    Commands that write results use it so that ``kill PID`` shuts down as Ctrl-C does:
+    finished shards and checkpoints are kept and the worker processes are stopped.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _worker_init(parent_pid: int) -> None:
+    """Initializer of a pool worker: exit when the parent dies; leave SIGINT to the parent.
+
+    On Linux the kernel kills the worker when its parent exits (``prctl(PR_SET_PDEATHSIG)``),
+    also after ``kill -9`` of the parent. Everywhere, a daemon thread checks every 0.2 s
+    that the parent is still the same process (``os.getppid()`` changes when the worker is
+    re-parented) and ends the worker otherwise. SIGINT is ignored: the parent handles
+    Ctrl-C and stops its workers, so they do not print tracebacks of their own.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):  # best effort; the thread below is the fallback
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL))
+    if os.getppid() != parent_pid:  # the parent died before the line above took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="epo-parent-watch", daemon=True).start()
+
+
 def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -> Iterator[tuple]:
     if workers <= 1:
         for i in units:
@@ -429,7 +649,13 @@ def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     with _single_threaded_children():
-        ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+        ex = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_worker_init,
+            initargs=(os.getpid(),),
+        )
+    finished = False
     try:
         # keep a bounded window in flight so finished shards are written early
         pending, todo = set(), iter(units)
@@ -444,7 +670,17 @@ def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -
                 nxt = next(todo, None)
                 if nxt is not None:
                     pending.add(ex.submit(run_unit, scenario, nxt, seed))
+        finished = True
     finally:
+        if not finished:  # interrupted or failed: stop the units in flight now
+            procs = list((getattr(ex, "_processes", None) or {}).values())
+            ex.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.terminate()
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.join(timeout=5)
         ex.shutdown(wait=True, cancel_futures=True)
 
 
@@ -455,6 +691,7 @@ def _iter_dask(
     workers: int,
     client=None,
     address: str | None = None,
+    timeout: float = 10.0,
 ) -> Iterator[tuple]:
     try:
         import distributed
@@ -464,7 +701,16 @@ def _iter_dask(
     own = client is None
     if own:
         if address:
-            client = distributed.Client(address)
+            try:
+                client = distributed.Client(address, timeout=timeout)
+            except (OSError, TimeoutError) as e:
+                first = str(e).strip().splitlines()[0][:120] if str(e).strip() else ""
+                raise SpecError(
+                    "scheduler",
+                    f"cannot reach the dask scheduler at {address!r} within {timeout:g} s "
+                    f"({type(e).__name__}: {first}); check the address, or raise the timeout "
+                    "(--scheduler-timeout)",
+                ) from None
         else:
             with _single_threaded_children():
                 cluster = distributed.LocalCluster(
@@ -498,11 +744,16 @@ def generate(
     address: str | None = None,
     progress: bool = True,
     on_shard: Callable[[str], None] | None = None,
+    scheduler_timeout: float = 10.0,
 ) -> GenerateReport:
     """Generate (or resume) ``scenario``'s dataset in ``out``; see the module docstring.
 
     ``engine``: ``"local"`` (process pool of ``workers``) or ``"dask"`` (``client``, a
     scheduler ``address``, or a new ``LocalCluster`` of ``workers`` processes).
+    ``scheduler_timeout``: seconds to wait for the scheduler at ``address``; an
+    unreachable one raises :class:`SpecError` (field ``scheduler``).
+    Pool workers exit when this process dies, also by ``kill -9`` (:func:`_worker_init`);
+    an interrupt or error stops the units in flight and keeps the finished shards.
     ``on_shard(name)`` runs after each shard is committed (tests use it to simulate a
     kill). Returns a :class:`GenerateReport`.
     """
@@ -512,10 +763,11 @@ def generate(
         raise SpecError("workers", f"expected an integer >= 1, got {workers!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise SpecError("seed", f"expected an integer >= 0, got {seed!r}")
+    t = scheduler_timeout
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < math.inf:
+        raise SpecError("scheduler_timeout", f"expected a finite number > 0, got {t!r}")
     t0 = time.perf_counter()
-    d = Path(out)
-    if d.exists() and not d.is_dir():
-        raise DatasetError(str(d), "exists and is not a directory")
+    d = check_output_dir(out)
     if d.is_dir() and not (d / MANIFEST).exists() and any(x.name != ".lock" for x in d.iterdir()):
         raise DatasetError(
             str(d),
@@ -572,7 +824,7 @@ def generate(
             if engine == "local":
                 it = _iter_local(scenario, units, int(seed), workers)
             else:
-                it = _iter_dask(scenario, units, int(seed), workers, client, address)
+                it = _iter_dask(scenario, units, int(seed), workers, client, address, float(t))
             t_start = time.perf_counter()
             for index, arrays, dt in it:
                 results[index] = arrays
@@ -657,8 +909,9 @@ class VerifyReport:
 def verify(directory: str | os.PathLike, checksums: bool = True) -> VerifyReport:
     """Check a dataset: manifest, completeness, checksums, shapes, counts, disjoint splits.
 
-    Raises :class:`DatasetError` only when the manifest itself is missing or unreadable;
-    every other problem becomes one line of :attr:`VerifyReport.problems`.
+    Raises :class:`DatasetError` only when the manifest itself is missing, unreadable or
+    malformed (:func:`check_manifest`); every other problem becomes one line of
+    :attr:`VerifyReport.problems`.
     """
     import h5py
 
@@ -736,13 +989,33 @@ def _check_split(m: dict, split: str) -> None:
                 f"{MANIFEST}.complete",
                 f"split {split!r} is unfinished ({len(missing)} shard(s) missing); run generate again to resume",
             )
+    for n in m["splits"][split]["shards"]:
+        if n not in m["shards"]:
+            raise DatasetError(
+                f"{MANIFEST}.shards",
+                f"shard {n!r} of split {split!r} is not listed although the manifest says "
+                "complete; run generate again to redo it",
+            )
+
+
+def check_indices(idx: np.ndarray, n: int, split: str) -> None:
+    """Refuse sample indices outside ``[0, n)`` (negatives too) with one :class:`SpecError`."""
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        bad = int(idx[(idx < 0) | (idx >= n)][0])
+        raise SpecError(
+            "index",
+            f"expected an index in [0, {n}) for split {split!r}"
+            f"{' (negative indices are not accepted)' if bad < 0 else ''}, got {bad}",
+        )
 
 
 class SplitReader:
     """Random access to one split without loading it: ``len``, ``reader[i]``, ``reader.read(idx)``.
 
     Shard files are opened on first use and kept open; use as a context manager or call
-    :meth:`close`. ``reader[i]`` is a dict of per-sample arrays (no sample axis);
+    :meth:`close`. Opening a shard checks its sha256 against the manifest once per file
+    version (:func:`check_shard`). Indices are ``0 .. len - 1``; negative indices are
+    refused (the index names a sample in figures and messages, so it has one spelling). ``reader[i]`` is a dict of per-sample arrays (no sample axis);
     :meth:`read` takes an index array (any order, repeats allowed) and returns a batch.
     """
 
@@ -777,6 +1050,7 @@ class SplitReader:
             import h5py
 
             path = self.directory / name
+            check_shard(path, self.manifest["shards"][name]["sha256"])
             try:
                 self._files[name] = h5py.File(path, "r")
             except (OSError, FileNotFoundError) as e:
@@ -784,13 +1058,7 @@ class SplitReader:
         return self._files[name]
 
     def _locate(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = len(self)
-        if idx.size and (idx.min() < -n or idx.max() >= n):
-            bad = idx[(idx < -n) | (idx >= n)][0]
-            raise SpecError(
-                "index", f"expected an index in [0, {n}) for split {self.split!r}, got {int(bad)}"
-            )
-        idx = np.where(idx < 0, idx + n, idx)
+        check_indices(idx, len(self), self.split)
         shard = np.searchsorted(self.offsets, idx, side="right") - 1
         return shard, idx - self.offsets[shard]
 

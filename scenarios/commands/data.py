@@ -37,7 +37,13 @@ def verify_cmd(directory: Path, no_checksums: bool):
 @click.option(
     "--split", type=click.Choice(["train", "val", "test"]), default="test", show_default=True
 )
-@click.option("--index", type=int, default=0, show_default=True, help="Sample index in the split.")
+@click.option(
+    "--index",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Sample index in the split, 0 to its size - 1 (negative indices are refused).",
+)
 @click.option(
     "--out",
     "out",
@@ -70,6 +76,8 @@ def plot_sample(s: dict, out: Path, title: str = "", agents=None) -> None:
     colors = ["black", "tab:pink", "tab:blue", "tab:green"]
     mode_colors = ["tab:red", "tab:blue", "tab:orange", "tab:green"]
     fig, ax = plt.subplots(figsize=(6, 6))
+    for lane in s.get("lanes", ()):  # map polylines (left-turn datasets)
+        ax.plot(lane[:, 0], lane[:, 1], "-", color="0.85", lw=6, zorder=0)
     for i in range(N):
         valid = s.get("history_valid", np.ones(len(hist), bool))
         ax.plot(hist[~valid, i, 0], hist[~valid, i, 1], ":", color=colors[i % 4], alpha=0.3)
@@ -99,7 +107,7 @@ def plot_sample(s: dict, out: Path, title: str = "", agents=None) -> None:
                 label=f"mode {m} ({share:.2f})" if i == 0 else None,
             )
     info = []
-    for k in ("main_game", "step", "collision_weight"):
+    for k in ("main_game", "step", "collision_weight", "gt_mode"):
         if k in s:
             info.append(f"{k} {float(s[k]):.3g}")
     ax.set_title(f"{title}\n{', '.join(info)}", fontsize=9)
