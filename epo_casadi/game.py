@@ -77,6 +77,11 @@ from .features import (
 
 __all__ = ["AgentSpec", "GameSpec", "ParamBlock", "ParamLayout", "Term", "PotentialGame"]
 
+#: Largest horizon a game may have: the symbolic build and every solver's memory grow
+#: linearly with K (K = 2000: 4 s and 0.1 GB to build crossing2); 10^12 would end in an
+#: allocation failure deep inside CasADi instead of a message.
+MAX_HORIZON = 10_000
+
 
 def _finite_vector(value, size: int | None, where: str) -> tuple[float, ...]:
     try:
@@ -204,6 +209,12 @@ class GameSpec:
         K = self.horizon
         if isinstance(K, bool) or not isinstance(K, int) or K < 1:
             raise SpecError("horizon", f"expected an integer number of steps >= 1, got {K!r}")
+        if K > MAX_HORIZON:
+            raise SpecError(
+                "horizon",
+                f"expected at most {MAX_HORIZON} steps (the symbolic build and every solver's "
+                f"memory grow linearly with it), got {K}",
+            )
         dt = self.dt
         if (
             isinstance(dt, bool)
@@ -231,6 +242,12 @@ class GameSpec:
                         f"pair_features[{n}].pairs",
                         f"expected two different agent names from {names}, got {list(pr)}",
                     )
+            every = getattr(pf, "every", None)
+            if every is not None and every > K:
+                raise SpecError(
+                    f"pair_features[{n}].every",
+                    f"expected an integer <= horizon ({K}): every {every} checks no step at all",
+                )
             pfs.append(pf)
         object.__setattr__(self, "agents", agents)
         object.__setattr__(self, "pair_features", tuple(pfs))

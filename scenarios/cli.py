@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import warnings
 
 # Small dense solves (a few hundred unknowns) are slower with threaded BLAS on a busy
 # machine; our batching parallelizes over problems instead. Set before numpy loads.
@@ -27,6 +28,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("scenarios.commands.demo:demo", "Run the main job on built-in defaults."),
     "generate": ("scenarios.commands.generate:generate", "Generate a dataset (e.g. rpi)."),
     "data": ("scenarios.commands.data:data", "Verify or show a generated dataset."),
+    "simulate": (
+        "scenarios.commands.simulate:simulate",
+        "Closed-loop episodes: plan, track, drive.",
+    ),
     "train": (
         "learning.commands:train_cmd",
         "Train ours (epo), V-LSTM + SC (sc) or V-LSTM (vlstm).",
@@ -78,8 +83,15 @@ def cli():
     """epo: energy-based potential games for joint motion forecasting and control."""
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings at the command line: one line naming what happened, no source location."""
+    click.echo(f"warning: {message}", err=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: runs the CLI, turns toolkit errors into one-line messages."""
+    shown = warnings.showwarning
+    warnings.showwarning = _one_line_warning
     try:
         rc = cli.main(args=argv, prog_name="epo", standalone_mode=False)
     except click.exceptions.Abort:
@@ -97,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
         return 130
+    finally:
+        warnings.showwarning = shown
     return rc if isinstance(rc, int) else 0
 
 

@@ -51,7 +51,7 @@ from epo_casadi.dynamics import DoubleIntegrator, KinematicBicycle, Unicycle, ma
 from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.features import OWN_FEATURES, PAIR_FEATURES, Feature, PairFeature
 from epo_casadi.features import Path as PathFeature
-from epo_casadi.game import AgentSpec, GameSpec, PotentialGame
+from epo_casadi.game import MAX_HORIZON, AgentSpec, GameSpec, PotentialGame
 
 __all__ = [
     "GameFile",
@@ -69,10 +69,6 @@ EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 EXAMPLES = ("crossing2", "robot_pedestrian", "intersection4", "highway_merge")
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
-#: Largest horizon a game file may ask for: the symbolic build and every solver's memory
-#: grow linearly with K (K = 2000: 4 s and 0.1 GB to build crossing2); 10^12 would end in
-#: an allocation failure deep inside CasADi instead of this message.
-MAX_HORIZON = 10_000
 #: Largest number of values (numbers, strings, lists, mappings) a game file may expand to,
 #: counting every repetition of a YAML alias: a few aliases can otherwise stand for
 #: billions of values and hang the loader.

@@ -13,8 +13,10 @@ import re
 import shlex
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
+import click
 import numpy as np
 import pytest
 import yaml
@@ -371,3 +373,22 @@ def test_console_script_subprocess(tmp_path):
         fail.stderr.strip() == "error: agents[1].radius: expected a number >= 0 (metres), got -0.25"
     )
     assert "Traceback" not in fail.stdout + fail.stderr
+
+
+@click.command()
+def _warning_cmd():
+    warnings.warn("an old checkpoint without a checksum", UserWarning, stacklevel=1)
+
+
+def test_cli_prints_a_warning_as_one_line(monkeypatch, capsys):
+    """A toolkit warning (e.g. an unverified old checkpoint) reaches a CLI user as one line,
+    not Python's two-line format with a source location; the command still succeeds."""
+    import scenarios.cli as cli_mod
+
+    monkeypatch.setitem(cli_mod.COMMANDS, "warn-test", (f"{__name__}:_warning_cmd", "test"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        rc = main(["warn-test"])
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert err == "warning: an old checkpoint without a checksum\n"

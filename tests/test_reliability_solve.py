@@ -372,3 +372,22 @@ def test_collision_every_beyond_horizon_is_refused():
     gf = parse_game(d)
     pair = [t for t in gf.game.terms if t.kind == "pair"]
     assert len(pair) == 1 and pair[0].steps == (30,) and pair[0].size == 1
+
+
+def test_library_specs_bound_horizon_and_every_like_game_files():
+    """Class: the same limits for the Python API as for game files (GameSpec, not only the
+    file parser, refuses a horizon beyond MAX_HORIZON and a pair term with no rows)."""
+    from epo_casadi import AgentSpec, Collision, GameSpec, Goal
+    from epo_casadi.game import MAX_HORIZON
+
+    agents = [
+        AgentSpec("a", "unicycle", [Goal()], x0=[0, 0, 1, 0], goal=[1, 0]),
+        AgentSpec("b", "unicycle", [Goal()], x0=[0, 1, 1, 0], goal=[1, 1]),
+    ]
+    with pytest.raises(SpecError, match=f"horizon: expected at most {MAX_HORIZON}"):
+        GameSpec(agents, horizon=10**12)
+    with pytest.raises(
+        SpecError, match=r"pair_features\[0\]\.every: expected an integer <= horizon \(10\)"
+    ):
+        GameSpec(agents, [Collision(every=11)], horizon=10)
+    GameSpec(agents, [Collision(every=10)], horizon=10)  # the last step is a row: accepted
