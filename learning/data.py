@@ -17,6 +17,9 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     history        (B, H+1, N, 4) float32   states (x, y, v, theta), last = current
     goals          (B, N, 2)      float32   goal positions (if the dataset has them)
     goal_candidates (B, N, G, 2)  float32   candidate goal points (if the dataset has them)
+    lanes          (B, L, P, 2)   float32   lane polylines, the map input (if stored)
+    paths          (B, N, P, 2)   float32   each agent's reference lane (game ``path``; if stored)
+    vref           (B, N)         float32   each agent's reference speed (game ``vref``; if stored)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states

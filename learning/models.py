@@ -10,7 +10,10 @@ step), ``M`` modes, ``K`` future steps. A scene batch is a dict of tensors:
   only by ours with ``goal_decoder="given"``);
 - ``goal_candidates`` (optional): ``(B, N, G, 2)`` candidate goal points per agent, with
   ``goal_candidates_mask`` ``(B, N, G)`` (used by ``goal_decoder="candidates"``);
-- ``lanes`` (optional): ``(B, L, P, 2)`` lane polylines, ``lanes_mask`` ``(B, L)``.
+- ``lanes`` (optional): ``(B, L, P, 2)`` lane polylines, ``lanes_mask`` ``(B, L)``;
+- ``paths`` (optional): ``(B, N, P, 2)`` each agent's reference lane and ``vref``
+  (optional) ``(B, N)`` its reference speed: ours fills the game's ``path`` / ``vref``
+  parameter blocks with them (left-turn datasets).
 
 Encoders (paper App. F.1): every agent's history is a polyline of vectors
 ``(start xy, end xy, time)``; a 3-layer LSTM of width 64 encodes it (V-LSTM); lanes go
@@ -56,6 +59,7 @@ __all__ = [
     "GOAL_DECODERS",
     "GoalDecoder",
     "goal_candidates",
+    "scene_reference",
     "ModelConfig",
     "build_model",
     "EPOModel",
@@ -180,7 +184,7 @@ class Encoder(nn.Module):
         z = self.agent_proj(hn[-1].reshape(B, N, -1))  # (B, N, W)
         lanes = scene.get("lanes")
         if lanes is not None:
-            lanes = lanes - origin[:, :, None]
+            lanes = lanes - origin  # (B, 1, 1, 2) against (B, L, P, 2)
             lv = torch.cat([lanes[:, :, :-1], lanes[:, :, 1:]], -1)  # (B, L, P-1, 4)
             lz = self.lane_proj(self.lane(lv).max(dim=2).values)  # (B, L, W)
             lmask = scene.get("lanes_mask")
@@ -276,6 +280,21 @@ def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.
     cand = cur[:, :, None, None, :2] + radii[:, None, None] * dirs[:, :, None]  # (B, N, R, A, 2)
     cand = cand.reshape(B, N, R * A, 2)
     return cand, torch.ones(B, N, R * A, dtype=torch.bool, device=dev)
+
+
+def scene_reference(scene: dict, field: str, agent: int, size: int) -> torch.Tensor:
+    """Agent ``agent``'s fixed game reference from the scene, flattened to ``(B, size)``.
+
+    ``paths`` ``(B, N, P, 2)`` fill the ``path`` block (``x_0, y_0, x_1, y_1, ...``, so
+    ``size = 2 P``); ``vref`` ``(B, N)`` fills the ``vref`` block (``size = 1``).
+    """
+    t = scene[field]
+    B = scene["history"].shape[0]
+    N = scene["history"].shape[2]
+    if t.ndim < 2 or t.shape[:2] != (B, N) or int(np.prod(t.shape[2:])) != size:
+        want = f"({B}, {N}, {size // 2}, 2)" if field == "paths" else f"({B}, {N})"
+        raise SpecError(field, f"expected shape {want} for the game, got {tuple(t.shape)}")
+    return t[:, agent].reshape(B, size)
 
 
 class GoalDecoder(nn.Module):
@@ -420,7 +439,9 @@ class EPOModel(_Base):
         self, scene: dict, z: torch.Tensor, goals: torch.Tensor | None = None
     ) -> torch.Tensor:
         """Parameters ``(B, M, n_p)``: current states from the scene, goals ``(B, M, N, 2)``
-        (default: :meth:`decode_goals`), predicted weights."""
+        (default: :meth:`decode_goals`), predicted weights; the ``path`` and ``vref``
+        references from the scene's ``paths`` and ``vref`` when present
+        (:func:`scene_reference`), else the game's defaults."""
         B, M, N = z.shape[0], self.cfg.modes, self.N
         L = self.game.params
         p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
@@ -431,6 +452,11 @@ class EPOModel(_Base):
             p[..., L[f"x0.{a}"].slice] = cur[:, None, i].to(z.dtype)
             if f"goal.{a}" in L:
                 p[..., L[f"goal.{a}"].slice] = goals[:, :, i].to(z.dtype)
+            # fixed references from the scene when it has them (else the game's defaults)
+            for block, field in (("path", "paths"), ("vref", "vref")):
+                if f"{block}.{a}" in L and field in scene:
+                    ref = scene_reference(scene, field, i, L[f"{block}.{a}"].size)
+                    p[..., L[f"{block}.{a}"].slice] = ref.to(z.dtype)[:, None]
         w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
         p = p.index_copy(-1, self.own_idx.to(z.device), w_own)

@@ -302,6 +302,9 @@ class LeftTurnWorld:
                 raise SpecError("left-turn.geometry", f"the turn misses oncoming lane {i}")
             self._zones.append((route, zone))
         self.sensor = Sensor(1, o.noise_std, o.dropout_prob, o.dropout_burst)
+        #: "go" / "yield" overrides the oncoming driver's gap rule while it is not committed
+        #: (demonstrations replay the other outcome, scenarios/left_turn.py); None: its rule
+        self.forced_decision: str | None = None
         self._ready = False
 
     # ------------------------------------------------------------------ episode
@@ -466,6 +469,8 @@ class LeftTurnWorld:
             )
             m = ch.margin(*self.options.margin)
             self.decision = "go" if gap_decision(t_o_clear, t_e_reach, t_e_clear, m) else "yield"
+            if self.forced_decision in ("go", "yield"):
+                self.decision = self.forced_decision
         drv.stop_obstacle = None if self.decision == "go" else self._stop_obstacle
         self.decisions.append(self.decision)
 

@@ -1,0 +1,735 @@
+"""Left-turn demonstrations after the paper's CARLA recipe (App. E), on :class:`LeftTurnWorld`.
+
+Scene (agent order ``[sdv, other]``; both recorded as extended-unicycle states
+``(x, y, v, theta)``: position, speed and heading of highway-env's vehicles, every
+``dt = 0.1`` s). The SDV turns left across the lane of an oncoming vehicle on one of the
+intersection geometries of :data:`scenarios.sim.left_turn.GEOMETRIES`. Everything about
+the world (start distances and speeds, the oncoming driver's character: aggressiveness,
+desired speed, reaction time) is drawn by ``LeftTurnWorld.reset(seed)``.
+
+Hand-made policies (:class:`SDVPolicy` and the world's oncoming driver)
+    1. The SDV first decides whether to enter: its *intent* is ``enter`` with probability
+       ``p_enter`` (seeded per episode), else ``wait``.
+    2. The oncoming driver yields or goes by its character (the world's gap rule, re-
+       evaluated every step until it is committed).
+    3. The SDV re-evaluates every step: with intent ``enter`` it drives on while the other
+       yields and stops before the conflict zone when the other goes; with intent ``wait``
+       it stops before the zone and goes when the other has cleared the zone or stands
+       yielding. Once the SDV cannot stop before the zone (braking at ``brake_max``) it is
+       committed and goes. It steers by pure pursuit along its route and follows the
+       speed limits (the turn's ``min(v_lim, sqrt(3 R))``) with comfortable braking.
+
+Outcomes and modes (``M = 2``)
+    The *outcome* of a run is which vehicle enters the conflict zone first:
+    ``sdv_first`` (slot 0) or ``other_first`` (slot 1). An episode is one *natural* run of
+    ``episode_steps`` steps (both policies as above; continued up to ``replay_extra`` more
+    steps while no vehicle has entered the zone, to know its outcome; replays likewise).
+    At every step ``k`` of it with ``T``
+    steps still to come, one sample: its future in the slot of the episode's outcome is
+    what happened (``gt_mode``), and the other slot is the *alternative outcome* replayed
+    from the same state: the world and the SDV policy at step ``k`` are copied
+    (``copy.deepcopy``: bit-identical states) and the decisions forced towards the other
+    outcome (``sdv_first``: the oncoming driver yields (``LeftTurnWorld.forced_decision``)
+    and the SDV drives on while it does; ``other_first``: the SDV waits and the oncoming
+    driver goes unless the SDV is already committed). A forced decision never overrides a
+    committed driver, so when the other outcome can no longer happen (one vehicle is
+    already in the zone, the SDV is committed, the oncoming driver is committed to go)
+    or the replay collides or ends with the same outcome, the slot repeats the ground
+    truth with ``mode_valid = False`` (the RPI convention).
+    A natural run that collides or in which neither vehicle enters the zone is redrawn
+    (next world seed, at most ``max_tries`` draws per episode).
+
+Agent-centric frame (paper App. E, F.2)
+    Every sample is expressed in the frame of the SDV at its current step ``k``: with the
+    SDV's world pose ``(x_s, y_s, theta_s)`` (the ``frame`` field),
+    ``p' = R(-theta_s) (p - (x_s, y_s))`` and ``theta' = theta - theta_s`` for positions and
+    headings of both agents (history, futures), lanes, paths and goal candidates; speeds
+    are unchanged. So the SDV is at the origin with heading 0 at the current step.
+    Headings are continuous along each agent's trajectory (no wrapping inside a sample);
+    each agent's headings are shifted by a multiple of ``2 pi`` so that its current
+    heading lies in ``(-pi, pi]``.
+
+Map input and goal candidates
+    ``lanes`` ``(2, P, 2)``: the SDV's route (approach, turn, exit) and the other's lane,
+    each a window from ``lane_behind`` m behind to ``lane_ahead`` m ahead of the agent's
+    current arc position, resampled to ``P = lane_points`` points (linearly extended
+    beyond the ends of the route). ``paths`` ``(N, P, 2)``: each agent's reference lane
+    for the game's lane (path) feature: the same two polylines. ``vref`` ``(N,)``: the
+    map's speed limit on each agent's window (the smallest on it: the turn's for the SDV
+    while the turn is ahead). ``goal_candidates`` ``(N, G, 2)``: ``G = goal_points`` points
+    on each agent's own lane centreline from its current arc position to ``goal_range``
+    m ahead (the paper extracts them from the current and neighbouring lanes; the agents
+    here never change lanes).
+
+History before the start
+    Steps before ``k = 0`` do not exist; they are a constant-velocity backward
+    extrapolation of the first state, ``False`` in ``history_valid`` (as in RPI).
+
+Splits (by intersection, as the paper: train intersection 1, val 2, test 3 and 4)
+    Work unit ``i`` is episode ``i mod E`` of geometry ``geometries[i // E]`` with
+    ``E = episodes_per_geometry``; units of ``train_geometries`` (``g0``) are the train
+    split, of ``val_geometries`` (``g1``) val, of ``test_geometries`` (``g2, g3``) test.
+    No geometry is in two splits.
+
+Augmentation (training only, App. E)
+    For every original train sample, ``augment_copies`` extra samples: the whole sample
+    (history, futures, lanes, paths, goal candidates) rotated about the origin by an angle
+    drawn from ``U[-augment_angle, augment_angle]`` (default ``pi/8``; headings shifted by
+    it; the angle is in ``rotation``), and Gaussian noise of std ``augment_noise`` (0.02 m)
+    added to the past history positions (steps ``k-H..k-1``; the current state, the
+    game's initial state, stays exact). The paper rotates "all observations"; the futures
+    are rotated too so that a sample stays a consistent scene. ``augment_copies = 4``
+    matches the paper's counts (1836 train samples from five episodes, against 361 val
+    from five: about 1 + 4 samples per original). Val and test samples are never augmented.
+
+Game (App. F.3, CARLA): per agent ``lane`` (:class:`~epo_casadi.features.Path`, the
+``paths`` polyline as parameter), ``vref`` (:class:`~epo_casadi.features.ReferenceVelocity`,
+``vref`` as parameter), velocity, acceleration, jerk, turn rate, turn acceleration, plus a
+terminal goal term (the goal decoder's goal); collision between the two vehicles (every
+step). Horizon ``K = T = 60``, ``dt = 0.1``. Radius ``r = 1.25`` m each, so ``2 r`` is
+the world's conflict clearance (2.5 m): the paper's ``r = L / 2`` (5 m apart) would
+penalize every ordinary pass in adjacent opposing lanes (3 to 3.75 m apart; a waiting SDV
+is ~2.8 m from the passing vehicle), i.e. the ground truth itself.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import asdict, dataclass, fields
+from functools import cached_property
+
+import numpy as np
+
+from epo_casadi import (
+    Acceleration,
+    AgentSpec,
+    Collision,
+    GameSpec,
+    Goal,
+    Jerk,
+    Path,
+    PotentialGame,
+    ReferenceVelocity,
+    TurnAcceleration,
+    TurnRate,
+    Velocity,
+)
+from epo_casadi.errors import SpecError, check_number
+
+from .dataset import SPLITS, FieldSpec, Scenario
+
+__all__ = [
+    "LeftTurnRecipe",
+    "LeftTurnScenario",
+    "SDVPolicy",
+    "OUTCOMES",
+    "to_frame",
+    "rotate_sample",
+]
+
+AGENTS = ("sdv", "other")
+#: mode slots: the SDV enters the conflict zone first / the oncoming vehicle does
+OUTCOMES = ("sdv_first", "other_first")
+LENGTH = 5.0  # vehicle length (m), highway-env's Vehicle.LENGTH
+
+
+def _names(field: str, v) -> tuple[str, ...]:
+    from .sim.left_turn import GEOMETRIES
+
+    if isinstance(v, str) or not isinstance(v, (list, tuple)):
+        raise SpecError(f"left-turn.{field}", f"expected a list of geometry names, got {v!r}")
+    t = tuple(v)
+    bad = [g for g in t if g not in GEOMETRIES]
+    if bad or not t:
+        raise SpecError(
+            f"left-turn.{field}",
+            f"expected a non-empty list of names from {sorted(GEOMETRIES)}, got {list(t)}",
+        )
+    return t
+
+
+@dataclass(frozen=True)
+class LeftTurnRecipe:
+    """Everything that defines a left-turn dataset (with the seed). Frozen; unknown keys fail."""
+
+    episodes_per_geometry: int = 5  #: E, episodes (work units) per intersection geometry
+    train_geometries: tuple[str, ...] = ("g0",)  #: geometries of the train split
+    val_geometries: tuple[str, ...] = ("g1",)  #: geometries of the val split
+    test_geometries: tuple[str, ...] = ("g2", "g3")  #: geometries of the test split
+    episodes_per_shard: int = 5  #: episodes per HDF5 shard (resume granularity)
+    history: int = 18  #: H, past steps in a sample (plus the current state): 1.8 s
+    horizon: int = 60  #: T = K, future steps of a sample and horizon of the game: 6 s
+    dt: float = 0.1  #: step (s)
+    episode_steps: int = 140  #: steps of a natural run; samples at k = 0 .. episode_steps - T
+    replay_extra: int = 40  #: runs go on up to this many more steps until one vehicle entered
+    p_enter: float = 0.5  #: probability that the SDV's first decision is to enter
+    brake_comfort: float = 3.0  #: SDV's planned braking (m/s^2)
+    brake_max: float = 5.0  #: SDV committed once it cannot stop before the zone at this (m/s^2)
+    acc_max: float = 2.0  #: SDV's largest acceleration (m/s^2)
+    stop_gap: float = 1.0  #: SDV stops with its front this far before the conflict zone (m)
+    lane_points: int = 25  #: P, points of every lane / path polyline
+    lane_behind: float = 10.0  #: lane window starts this far behind the agent (m)
+    lane_ahead: float = 90.0  #: ... and ends this far ahead (m)
+    goal_points: int = 60  #: G, goal candidates per agent (the paper's G = 60)
+    goal_range: float = 90.0  #: candidates from the agent's position to this far ahead (m)
+    augment_copies: int = 4  #: extra rotated + noisy samples per original train sample
+    augment_angle: float = math.pi / 8  #: rotation drawn from U[-a, a] (rad)
+    augment_noise: float = 0.02  #: std (m) of the noise on the past history positions
+    radius: float = (
+        1.25  #: collision radius of each vehicle in the game (m); 2 r = 2.5 m, see below
+    )
+    w_goal: float = 1.0  #: default weights of the game (the network predicts them)
+    w_lane: float = 1.0
+    w_vref: float = 1.0
+    w_vel: float = 0.1
+    w_acc: float = 1.0
+    w_jerk: float = 0.1
+    w_turn: float = 1.0
+    w_turnacc: float = 0.1
+    w_collision: float = 10.0
+    max_tries: int = 5  #: world seeds drawn per episode until a natural run is usable
+
+    def __post_init__(self):
+        p = "left-turn"
+        for k in ("train_geometries", "val_geometries", "test_geometries"):
+            object.__setattr__(self, k, _names(k, getattr(self, k)))
+        every = self.train_geometries + self.val_geometries + self.test_geometries
+        dup = sorted({g for g in every if every.count(g) > 1})
+        if dup:
+            raise SpecError(f"{p}.test_geometries", f"a geometry may be in one split only: {dup}")
+        for k, lo in (
+            ("episodes_per_geometry", 1),
+            ("episodes_per_shard", 1),
+            ("history", 0),
+            ("horizon", 2),
+            ("replay_extra", 0),
+            ("lane_points", 2),
+            ("goal_points", 2),
+            ("augment_copies", 0),
+            ("max_tries", 1),
+        ):
+            check_number(f"{p}.{k}", getattr(self, k), lo=lo, integer=True)
+        check_number(f"{p}.episode_steps", self.episode_steps, lo=self.horizon, integer=True)
+        check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
+        check_number(f"{p}.p_enter", self.p_enter, lo=0.0, hi=1.0)
+        for k in ("brake_comfort", "brake_max", "acc_max", "lane_ahead", "goal_range", "radius"):
+            check_number(f"{p}.{k}", getattr(self, k), lo=0.0, lo_open=True)
+        for k in ("stop_gap", "lane_behind", "augment_noise"):
+            check_number(f"{p}.{k}", getattr(self, k), lo=0.0)
+        check_number(f"{p}.augment_angle", self.augment_angle, lo=0.0, hi=math.pi)
+        for f in fields(self):
+            if f.name.startswith("w_"):
+                check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+
+    @property
+    def geometries(self) -> tuple[str, ...]:
+        """Geometries in unit order: train, then val, then test ones."""
+        return self.train_geometries + self.val_geometries + self.test_geometries
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> LeftTurnRecipe:
+        if not isinstance(d, dict):
+            raise SpecError(
+                "left-turn", f"expected a mapping of recipe fields, got {type(d).__name__}"
+            )
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise SpecError(
+                "left-turn", f"unknown recipe field(s) {unknown}; allowed: {sorted(names)}"
+            )
+        return cls(**d)
+
+
+# --------------------------------------------------------------------------------------
+# geometry helpers
+# --------------------------------------------------------------------------------------
+def _at(route: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(n, 2)`` and headings ``(n,)`` of a polyline at arc lengths ``s``, linearly
+    extended beyond both ends along the first / last segment."""
+    seg = np.diff(route, axis=0)
+    L = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    s = np.atleast_1d(np.asarray(s, dtype=float))
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    t = (s - cum[k]) / L[k]
+    pts = route[k] + t[:, None] * seg[k]
+    return pts, np.arctan2(seg[k, 1], seg[k, 0])
+
+
+def to_frame(xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Positions ``(..., 2)`` in the frame of ``pose = (x, y, theta)``:
+    ``R(-theta) (p - (x, y))``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = np.asarray(xy, dtype=float) - np.asarray(pose[:2], dtype=float)
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
+def _rotate(xy: np.ndarray, phi: float) -> np.ndarray:
+    c, s = math.cos(phi), math.sin(phi)
+    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
+
+
+# --------------------------------------------------------------------------------------
+# the SDV's hand-made policy
+# --------------------------------------------------------------------------------------
+class SDVPolicy:
+    """The SDV's hand-made driver (module docstring): intent, re-evaluation, commitment,
+    pure-pursuit steering and speed-limit following. ``force``: ``None`` (natural),
+    ``"sdv_first"`` or ``"other_first"`` (a replay towards that outcome)."""
+
+    def __init__(self, world, recipe: LeftTurnRecipe, intent: str):
+        rm = world.road_map
+        self.recipe = recipe
+        self.intent = intent
+        self.force: str | None = None
+        self.committed = False
+        self.route = world.ego_route
+        geo = world.geometry
+        s_turn0 = rm.lane("ego_approach").length
+        self.turn = (s_turn0, s_turn0 + rm.lane("ego_turn").length)
+        self.v_lim = float(geo.speed_limit)
+        self.v_turn = float(rm.lane("ego_turn").speed_limit)
+        self.zone_in = float(world.conflict.a[0]) - LENGTH / 2  # centre arc length at entry
+        self.s_stop = self.zone_in - recipe.stop_gap
+        self.half = world.vehicle.length / 2
+
+    def plan(self, world, s: float, v: float) -> str:
+        """``"go"`` or ``"stop"`` at SDV arc length ``s`` and speed ``v`` (also updates
+        :attr:`committed`)."""
+        r = self.recipe
+        if not self.committed:
+            self.committed = s >= self.s_stop + 0.5 or v * v / (2 * r.brake_max) > self.zone_in - s
+        zone = world.conflict
+        s_o = float(_progress(world.driver.position, world.other_route))
+        if self.committed or s_o - LENGTH / 2 > zone.b[1]:  # committed, or the other cleared
+            return "go"
+        other_yields = world.decision == "yield"
+        if self.force == "other_first":
+            return "stop"
+        if self.force == "sdv_first" or self.intent == "enter":
+            return "go" if other_yields else "stop"
+        return "go" if other_yields and world.driver.speed < 1.0 else "stop"
+
+    def command(self, world) -> np.ndarray:
+        """The SDV's command ``(a, delta)`` for the next step."""
+        r = self.recipe
+        x = world.truth()[0]
+        s = float(_progress(x[:2], self.route))
+        v = float(x[2])
+        t0, t1 = self.turn
+        if s < t0:
+            v_ref = min(self.v_lim, math.sqrt(self.v_turn**2 + 2 * r.brake_comfort * (t0 - s)))
+        elif s < t1:
+            v_ref = self.v_turn
+        else:
+            v_ref = self.v_lim
+        a_ff = 0.0
+        if self.plan(world, s, v) == "stop":
+            v_stop = math.sqrt(2 * r.brake_comfort * max(self.s_stop - s, 0.0))
+            if v_stop < v_ref:
+                v_ref, a_ff = v_stop, (-r.brake_comfort if v_stop > 0 else 0.0)
+        a = min(max(2.0 * (v_ref - v) + a_ff, -6.0), r.acc_max)
+        a = max(a, -v / world.dt)  # never reverse
+        # pure pursuit of the route at look-ahead Ld from the centre of the vehicle
+        Ld = max(5.0, 0.6 * v + 3.0)
+        tgt, _ = _at(self.route, s + Ld)
+        d = tgt[0] - x[:2]
+        alpha = math.atan2(d[1], d[0]) - x[3]
+        kappa = 2 * math.sin(alpha) / max(float(np.hypot(*d)), 1e-6)
+        sin_beta = min(max(kappa * self.half, -0.99), 0.99)
+        delta = math.atan(2 * math.tan(math.asin(sin_beta)))
+        return np.array([a, min(max(delta, -math.pi / 4), math.pi / 4)])
+
+
+def _progress(p: np.ndarray, route: np.ndarray) -> float:
+    from .maps import project_to_polyline
+
+    return float(project_to_polyline(np.asarray(p, dtype=float)[None], route)[0][0])
+
+
+# --------------------------------------------------------------------------------------
+# runs
+# --------------------------------------------------------------------------------------
+@dataclass
+class Run:
+    """A recorded run: states ``(n+1, N, 4)`` (world frame) and the step at which each
+    agent's front entered the conflict zone (``None``: not within the run)."""
+
+    states: np.ndarray
+    entry: list[int | None]
+    collided: bool
+
+    @property
+    def outcome(self) -> str | None:
+        es, eo = self.entry
+        if es is None and eo is None:
+            return None
+        if eo is None or (es is not None and es < eo):
+            return "sdv_first"
+        return "other_first"
+
+
+def _entered(world, policy: SDVPolicy) -> tuple[bool, bool]:
+    x = world.truth()
+    s_e = _progress(x[0, :2], policy.route)
+    s_o = _progress(x[1, :2], world.other_route)
+    return s_e >= policy.zone_in, s_o + LENGTH / 2 >= world.conflict.b[0]
+
+
+def simulate(
+    world,
+    policy: SDVPolicy,
+    steps: int,
+    k0: int = 0,
+    entry: list | None = None,
+    until_outcome: int = 0,
+    snapshots: int = 0,
+):
+    """Step ``world`` with ``policy`` for ``steps`` steps (and up to ``until_outcome`` more
+    while no vehicle has entered the zone). ``k0``: the step number of the start;
+    ``entry``: entry steps known so far. Returns the :class:`Run` and deep copies
+    ``(world, policy)`` at the first ``snapshots`` steps (before stepping)."""
+    entry = list(entry) if entry is not None else [None, None]
+    states = [world.truth()]
+    snaps = []
+    k = k0
+    for j in range(steps + until_outcome):
+        if j >= steps and (entry[0] is not None or entry[1] is not None):
+            break
+        if j < snapshots:
+            snaps.append(copy.deepcopy((world, policy)))
+        if policy.force == "other_first":
+            world.forced_decision = None if policy.committed else "go"
+        elif policy.force == "sdv_first":
+            world.forced_decision = "yield"
+        world.step(policy.command(world))
+        k += 1
+        states.append(world.truth())
+        for i, e in enumerate(_entered(world, policy)):
+            if e and entry[i] is None:
+                entry[i] = k
+        if world.ego.crashed or world.driver.crashed:
+            return Run(np.array(states), entry, True), snaps
+    return Run(np.array(states), entry, False), snaps
+
+
+# --------------------------------------------------------------------------------------
+# the dataset scenario
+# --------------------------------------------------------------------------------------
+def _unwrap_shift(theta: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Shift each agent's headings ``(..., N)`` by the multiple of ``2 pi`` that puts its
+    current heading ``cur`` ``(N,)`` into ``(-pi, pi]``."""
+    return theta - 2 * math.pi * np.ceil((cur - math.pi) / (2 * math.pi))
+
+
+def rotate_sample(sample: dict[str, np.ndarray], phi: float) -> dict[str, np.ndarray]:
+    """The sample rotated about the origin by ``phi``: positions of history, futures,
+    lanes, paths and goal candidates; headings ``+ phi`` (a new dict; ``rotation += phi``)."""
+    out = dict(sample)
+    for k in ("history", "future"):
+        x = np.array(sample[k], dtype=float)
+        x[..., :2] = _rotate(x[..., :2], phi)
+        x[..., 3] += phi
+        out[k] = x
+    for k in ("lanes", "paths", "goal_candidates"):
+        out[k] = _rotate(np.asarray(sample[k], dtype=float), phi)
+    out["rotation"] = float(sample.get("rotation", 0.0)) + phi
+    return out
+
+
+class LeftTurnScenario(Scenario):
+    """The left-turn demonstration generator (module docstring). Construct hooks:
+    :meth:`world`, :meth:`agent_specs`, :meth:`game_spec`, :meth:`episode`,
+    :meth:`alternative`, :meth:`cut`, :meth:`augment`."""
+
+    name = "left-turn"
+
+    def __init__(self, recipe: LeftTurnRecipe | None = None):
+        if recipe is not None and not isinstance(recipe, LeftTurnRecipe):
+            raise SpecError("recipe", f"expected a LeftTurnRecipe, got {type(recipe).__name__}")
+        self.recipe = recipe or LeftTurnRecipe()
+
+    def __getstate__(self):
+        return {"recipe": self.recipe}
+
+    def __setstate__(self, state):
+        self.recipe = state["recipe"]
+
+    # ---- Scenario interface ----------------------------------------------------------
+    def recipe_dict(self) -> dict:
+        return self.recipe.to_dict()
+
+    @property
+    def n_units(self) -> int:
+        return len(self.recipe.geometries) * self.recipe.episodes_per_geometry
+
+    @property
+    def units_per_shard(self) -> int:
+        return self.recipe.episodes_per_shard
+
+    def geometry_of(self, index: int) -> str:
+        """Geometry name of work unit ``index``."""
+        return self.recipe.geometries[index // self.recipe.episodes_per_geometry]
+
+    def split_of(self, geometry: str) -> str:
+        r = self.recipe
+        return (
+            "train"
+            if geometry in r.train_geometries
+            else "val"
+            if geometry in r.val_geometries
+            else "test"
+        )
+
+    def split_units(self, seed: int) -> dict[str, list[int]]:
+        """By geometry (module docstring); the seed does not enter."""
+        out: dict[str, list[int]] = {s: [] for s in SPLITS}
+        for i in range(self.n_units):
+            out[self.split_of(self.geometry_of(i))].append(i)
+        return out
+
+    def expected_samples(self) -> int:
+        r = self.recipe
+        per = max(r.episode_steps - r.horizon + 1, 1)
+        E = r.episodes_per_geometry
+        return per * E * (len(r.geometries) + len(r.train_geometries) * r.augment_copies)
+
+    def schema(self) -> dict[str, FieldSpec]:
+        r = self.recipe
+        N, H, M, T, P, G = 2, r.history, 2, r.horizon, r.lane_points, r.goal_points
+        return {
+            "history": FieldSpec(
+                (H + 1, N, 4), "float32", "states (x, y, v, theta) at steps k-H..k, SDV frame"
+            ),
+            "history_valid": FieldSpec((H + 1,), "bool", "False where before the episode start"),
+            "future": FieldSpec(
+                (M, N, T, 4), "float32", "states at k+1..k+T; mode 0: SDV first, 1: other first"
+            ),
+            "mode_valid": FieldSpec((M,), "bool", "False: that outcome is impossible (copy of gt)"),
+            "gt_mode": FieldSpec((), "int8", "ground truth: the outcome of the episode"),
+            "lanes": FieldSpec((N, P, 2), "float32", "map input: SDV route, other's lane"),
+            "paths": FieldSpec((N, P, 2), "float32", "reference lane of each agent (game path)"),
+            "vref": FieldSpec((N,), "float32", "speed limit on each agent's lane window (m/s)"),
+            "goal_candidates": FieldSpec((N, G, 2), "float32", "goal points on each agent's lane"),
+            "frame": FieldSpec((3,), "float64", "SDV world pose (x, y, theta) at the current step"),
+            "rotation": FieldSpec((), "float32", "augmentation rotation (rad); 0: original"),
+            "augmented": FieldSpec((), "bool", "True: a rotated, noisy copy (train only)"),
+            "main_game": FieldSpec((), "int64", "work unit (episode) index"),
+            "geometry": FieldSpec((), "int8", "index of the intersection in meta.geometries"),
+            "step": FieldSpec((), "int16", "k, steps since the episode start"),
+            "intent": FieldSpec((), "int8", "the SDV's first decision: 1 enter, 0 wait"),
+            "aggressiveness": FieldSpec((), "float32", "the oncoming driver's character"),
+            "world_seed": FieldSpec((), "int64", "LeftTurnWorld.reset seed of the episode"),
+        }
+
+    def meta(self) -> dict:
+        from .sim.left_turn import GEOMETRIES
+
+        g = self.game
+        return {
+            "agents": list(AGENTS),
+            "state": ["x", "y", "v", "theta"],
+            "modes": list(OUTCOMES),
+            "geometries": sorted(GEOMETRIES),
+            "splits_by_geometry": {
+                "train": list(self.recipe.train_geometries),
+                "val": list(self.recipe.val_geometries),
+                "test": list(self.recipe.test_geometries),
+            },
+            "frame": "SDV at the origin, x along its heading, at the current step",
+            "param_names": list(g.params.names),
+            "dt": self.recipe.dt,
+            "units": "metres, seconds, radians",
+        }
+
+    # ---- construct hooks ---------------------------------------------------------------
+    def agent_specs(self) -> list[AgentSpec]:
+        """SDV and oncoming vehicle: App. F.3 CARLA features plus the goal term."""
+        r = self.recipe
+        out = []
+        for name in AGENTS:
+            feats = [
+                Goal(weight=r.w_goal),
+                Path(weight=r.w_lane, points=r.lane_points, label="lane"),
+                ReferenceVelocity(weight=r.w_vref, label="vref"),
+                Velocity(weight=r.w_vel),
+                Acceleration(weight=r.w_acc),
+                Jerk(weight=r.w_jerk),
+                TurnRate(weight=r.w_turn),
+                TurnAcceleration(weight=r.w_turnacc),
+            ]
+            out.append(AgentSpec(name, "unicycle", feats, radius=r.radius))
+        return out
+
+    def game_spec(self) -> GameSpec:
+        r = self.recipe
+        return GameSpec(
+            self.agent_specs(),
+            [Collision(weight=r.w_collision, every=1)],
+            horizon=r.horizon,
+            dt=r.dt,
+        )
+
+    @cached_property
+    def game(self) -> PotentialGame:
+        return PotentialGame(self.game_spec())
+
+    def world(self, geometry: str):
+        from .sim.left_turn import LeftTurnWorld
+
+        r = self.recipe
+        return LeftTurnWorld(
+            geometry=geometry,
+            dt=r.dt,
+            max_steps=r.episode_steps + r.horizon + r.replay_extra + 1,
+            noise_std=0.0,
+        )
+
+    def episode(self, geometry: str, rng: np.random.Generator):
+        """A usable natural run: ``(world_seed, intent, run, snapshots)`` (module docstring).
+        Raises :class:`SpecError` when ``max_tries`` draws all collide or stay undecided."""
+        r = self.recipe
+        w = self.world(geometry)
+        for _ in range(r.max_tries):
+            wseed = int(rng.integers(0, 2**31 - 1))
+            intent = "enter" if rng.random() < r.p_enter else "wait"
+            w.reset(wseed)
+            pol = SDVPolicy(w, r, intent)
+            run, snaps = simulate(
+                w,
+                pol,
+                r.episode_steps,
+                until_outcome=r.replay_extra,
+                snapshots=r.episode_steps - r.horizon + 1,
+            )
+            if not run.collided and run.outcome is not None:
+                return wseed, intent, run, snaps, w.character.aggressiveness
+        raise SpecError(
+            "left-turn.max_tries",
+            f"{r.max_tries} world draws on {geometry} gave no usable run (collision or "
+            "no vehicle entered the conflict zone)",
+        )
+
+    def alternative(self, run: Run, k: int, snap) -> np.ndarray | None:
+        """States ``(T, N, 4)`` after step ``k`` of the replay towards the other outcome, or
+        ``None`` when that outcome can no longer happen (module docstring)."""
+        r = self.recipe
+        alt = OUTCOMES[1 - OUTCOMES.index(run.outcome)]
+        if any(e is not None and e <= k for e in run.entry):
+            return None
+        world, pol = copy.deepcopy(snap)
+        if alt == "other_first" and pol.committed:
+            return None
+        if alt == "sdv_first" and world.committed and world.decision == "go":
+            return None
+        pol.force = alt
+        rep, _ = simulate(world, pol, r.horizon, k0=k, until_outcome=r.replay_extra)
+        if rep.collided or rep.outcome != alt or len(rep.states) < r.horizon + 1:
+            return None
+        return rep.states[1 : r.horizon + 1]
+
+    def cut(self, run: Run, k: int, snap, alt: np.ndarray | None) -> dict:
+        """The sample at step ``k`` in the SDV frame (no augmentation)."""
+        r = self.recipe
+        H, T = r.history, r.horizon
+        world, pol = snap
+        X = run.states
+        pre = _pre_history(X[0], H, r.dt)
+        full = np.concatenate([pre, X], axis=0)  # row k + H is step k
+        hist = full[k : k + H + 1]
+        valid = np.arange(k - H, k + 1) >= 0
+        gt = OUTCOMES.index(run.outcome)
+        fut = np.empty((2, 2, T, 4))
+        fut[gt] = X[k + 1 : k + T + 1].transpose(1, 0, 2)
+        fut[1 - gt] = fut[gt] if alt is None else alt.transpose(1, 0, 2)
+        pose = X[k, 0, [0, 1, 3]].astype(float)
+        # frame: positions, headings (continuous per agent, current one in (-pi, pi])
+        cur = X[k, :, 3] - pose[2]
+        hist_l = np.array(hist, dtype=float)
+        hist_l[..., :2] = to_frame(hist[..., :2], pose)
+        hist_l[..., 3] = _unwrap_shift(hist[..., 3] - pose[2], cur)
+        fut_l = np.array(fut)
+        fut_l[..., :2] = to_frame(fut[..., :2], pose)
+        fut_l[..., 3] = _unwrap_shift(fut[..., 3] - pose[2], cur[:, None])
+        # lanes, paths, goal candidates, reference speeds
+        s_e = _progress(X[k, 0, :2], pol.route)
+        s_o = _progress(X[k, 1, :2], world.other_route)
+        win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
+        ahead = np.linspace(0.0, r.goal_range, r.goal_points)
+        lanes = np.stack([_at(pol.route, s_e + win)[0], _at(world.other_route, s_o + win)[0]])
+        cands = np.stack([_at(pol.route, s_e + ahead)[0], _at(world.other_route, s_o + ahead)[0]])
+        t0, t1 = pol.turn
+        turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
+        vref = [pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim]
+        lanes = to_frame(lanes, pose)
+        return {
+            "history": hist_l,
+            "history_valid": valid,
+            "future": fut_l,
+            "mode_valid": np.array([True, True]) if alt is not None else np.arange(2) == gt,
+            "gt_mode": gt,
+            "lanes": lanes,
+            "paths": lanes,
+            "vref": np.array(vref),
+            "goal_candidates": to_frame(cands, pose),
+            "frame": pose,
+            "rotation": 0.0,
+            "augmented": False,
+            "step": k,
+        }
+
+    def augment(self, sample: dict, rng: np.random.Generator) -> dict:
+        """One augmented copy (module docstring): rotation of the whole sample, noise on the
+        past history positions."""
+        r = self.recipe
+        out = rotate_sample(sample, float(rng.uniform(-r.augment_angle, r.augment_angle)))
+        h = out["history"]
+        h[:-1, :, :2] += rng.normal(0.0, r.augment_noise, size=h[:-1, :, :2].shape)
+        out["augmented"] = True
+        return out
+
+    # ---- one work unit -------------------------------------------------------------------
+    def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
+        """Every sample of episode ``index`` (module docstring)."""
+        from .sim.left_turn import GEOMETRIES
+
+        r = self.recipe
+        geo = self.geometry_of(index)
+        ep_ss, aug_ss = seed.spawn(2)
+        wseed, intent, run, snaps, aggr = self.episode(geo, np.random.default_rng(ep_ss))
+        aug_rng = np.random.default_rng(aug_ss)
+        train = self.split_of(geo) == "train"
+        common = {
+            "main_game": index,
+            "geometry": sorted(GEOMETRIES).index(geo),
+            "intent": int(intent == "enter"),
+            "aggressiveness": aggr,
+            "world_seed": wseed,
+        }
+        rows = []
+        for k in range(r.episode_steps - r.horizon + 1):
+            s = self.cut(run, k, snaps[k], self.alternative(run, k, snaps[k]))
+            s.update(common)
+            rows.append(s)
+            if train:
+                rows.extend({**self.augment(s, aug_rng)} for _ in range(r.augment_copies))
+        schema = self.schema()
+        return {
+            k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
+            for k, fs in schema.items()
+        }
+
+
+def _pre_history(x0: np.ndarray, steps: int, dt: float) -> np.ndarray:
+    """States at steps ``-steps..-1`` (``(steps, N, 4)``): constant-velocity extrapolation."""
+    j = np.arange(-steps, 0, dtype=float)[:, None] * dt  # (steps, 1)
+    out = np.repeat(x0[None], steps, axis=0).astype(float)
+    out[..., 0] = x0[None, :, 0] + j * x0[None, :, 2] * np.cos(x0[None, :, 3])
+    out[..., 1] = x0[None, :, 1] + j * x0[None, :, 2] * np.sin(x0[None, :, 3])
+    return out
