@@ -9,6 +9,7 @@ from .lm import LMOptions, solve_lm
 from .multimodal import MultiModalOptions, MultiModalResult, solve_multimodal
 from .nash import NashCertificate, NashOptions, nash_certificate
 from .result import SolveResult, Status
+from .sqp import SQPOptions, SQPSolver, solve_sqp
 from .structured import StructuredGN
 
 __all__ = [
@@ -28,4 +29,7 @@ __all__ = [
     "nash_certificate",
     "solve_ipopt",
     "solve_lm",
+    "SQPOptions",
+    "SQPSolver",
+    "solve_sqp",
 ]

@@ -1,0 +1,209 @@
+"""A sampled check that a feedback policy is a (local) feedback Nash equilibrium.
+
+The iLQ solver (:mod:`solvers.ilq`) returns a feedback policy, one per stage
+``k = 0..K-1``, for the joint stage vectors of :func:`solvers.ilq.to_stages`::
+
+    U_k(X) = U*_k - P_k (X - X*_k) - a_k          (P = info["gains"], a = info["feedforward"])
+
+A feedback Nash equilibrium is a set of policies from which no player lowers its own cost
+``C_i`` (:mod:`epo_casadi.game`) by changing *its own* policy while the others keep
+theirs (feedback included: the others react to the deviation through their gains). The
+open-loop certificate (:mod:`solvers.nash`) is the wrong test for it: it holds the others'
+*controls* fixed, not their policies.
+
+:func:`feedback_nash_check` perturbs each player's policy, its rows of the gains ``P_k``
+and of the feed-forward ``a_k`` together, along ``n_random`` random directions (unit RMS
+entries, seeded) and ``n_coordinate`` coordinate directions (one feed-forward entry of
+one stage), each with both signs and every step in ``scales``; rolls the closed loop out
+from the game's initial states with the nonlinear dynamics; and evaluates every player's
+cost. The largest decrease of the deviating player's own cost is its *gain*; the check
+passes when every player's gain is ``<= tol (1 + |C_i|)``.
+
+It is a sampled, local test: a passing check says that none of the tried deviations helps
+(a gradient of size ``g`` along a direction shows as a gain of about ``scale |g|``); it does
+not prove optimality. A policy shifted away from the equilibrium fails it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from epo_casadi.errors import SpecError, check_number
+from epo_casadi.game import PotentialGame
+
+from .lm import check_options
+
+__all__ = ["FeedbackNashOptions", "FeedbackNashCheck", "feedback_nash_check"]
+
+
+@dataclass(frozen=True)
+class FeedbackNashOptions:
+    """How many deviations to try, how far, and the tolerance on a player's gain."""
+
+    n_random: int = 8  #: random directions per player (gains and feed-forward together)
+    n_coordinate: int = 4  #: coordinate directions per player (one feed-forward entry each)
+    scales: tuple[float, ...] = (1e-3, 1e-2)  #: step sizes along every direction (both signs)
+    tol: float = 1e-6  #: a player fails when its cost drops by more than tol (1 + |C_i|)
+    seed: int = 0  #: seed of the random directions
+
+    def __post_init__(self):
+        for name in ("n_random", "n_coordinate", "seed"):
+            check_number(f"feedback_nash.{name}", getattr(self, name), lo=0, integer=True)
+        check_number("feedback_nash.tol", self.tol, lo=0, lo_open=True)
+        try:
+            scales = tuple(float(s) for s in self.scales)
+        except (TypeError, ValueError):
+            raise SpecError("feedback_nash.scales", "expected a list of numbers > 0") from None
+        if not scales:
+            raise SpecError("feedback_nash.scales", "expected at least one step size")
+        for s in scales:
+            check_number("feedback_nash.scales", s, lo=0, lo_open=True)
+        object.__setattr__(self, "scales", scales)
+
+
+@dataclass(frozen=True)
+class FeedbackNashCheck:
+    """Result of :func:`feedback_nash_check`.
+
+    ``costs``: ``C_i`` under the given policies ``(N,)``; ``gain``: the largest decrease of
+    ``C_i`` found by player ``i``'s own deviations ``(N,)`` (``<= 0``: none helped);
+    ``ok_agent``: per player, ``gain <= tol (1 + |C_i|)``; ``trials``: deviations tried
+    per player; ``time_s``: wall time.
+    """
+
+    ok: bool
+    costs: np.ndarray
+    gain: np.ndarray
+    ok_agent: np.ndarray
+    trials: int
+    tol: float
+    time_s: float
+
+    @property
+    def max_relative_gain(self) -> float:
+        return float(np.max(self.gain / (1.0 + np.abs(self.costs)))) if self.gain.size else 0.0
+
+    def summary(self) -> str:
+        state = "passes" if self.ok else "FAILS"
+        per = ", ".join(f"{g:.3g}" for g in self.gain)
+        return (
+            f"feedback Nash check {state}: largest own-cost decrease per player [{per}] "
+            f"({self.trials} deviations each, tol {self.tol:g} (1 + |C_i|), {self.time_s:.2f} s)"
+        )
+
+
+def _closed_loop(game: PotentialGame) -> ca.Function:
+    """``(p, Xr (nx, K+1), Ur (nu, K), P (nu*nx, K), a (nu, K)) -> C (N)``: the closed loop
+    from the game's initial states, rolled out with the nonlinear dynamics, and its costs."""
+
+    def build():
+        K = game.K
+        nx, nu = int(sum(game.nx)), int(sum(game.nu))
+        xo = np.concatenate([[0], np.cumsum(game.nx)]).astype(int)
+        uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
+        p = ca.SX.sym("p", game.n_p)
+        Xr = ca.SX.sym("Xr", nx, K + 1)
+        Ur = ca.SX.sym("Ur", nu, K)
+        Pg = ca.SX.sym("P", nu * nx, K)
+        a = ca.SX.sym("a", nu, K)
+        x = ca.vertcat(
+            *[
+                p[game.params[f"x0.{n}"].start : game.params[f"x0.{n}"].start + game.nx[i]]
+                for i, n in enumerate(game.agent_names)
+            ]
+        )
+        xs, us = [x], []
+        for k in range(K):
+            Pk = ca.reshape(Pg[:, k], nx, nu).T  # row-major (nu, nx)
+            u = Ur[:, k] - ca.mtimes(Pk, x - Xr[:, k]) - a[:, k]
+            x = game.stage_step(x, u)  # own dynamics, or a coupling's joint model
+            xs.append(x)
+            us.append(u)
+        # flat game layout (agent-major, then time)
+        xf = ca.vertcat(*[ca.vertcat(*[xk[xo[i] : xo[i + 1]] for xk in xs]) for i in range(game.N)])
+        uf = ca.vertcat(*[ca.vertcat(*[uk[uo[i] : uo[i + 1]] for uk in us]) for i in range(game.N)])
+        C = game.function("traj_agent_costs")(xf, uf, p)
+        return ca.Function("closed_loop_costs", [p, Xr, Ur, Pg, a], [C])
+
+    return game.cached(("feedback_nash_closed_loop",), build)
+
+
+def feedback_nash_check(
+    game: PotentialGame,
+    p: np.ndarray,
+    states: np.ndarray,
+    controls: np.ndarray,
+    gains: np.ndarray,
+    feedforward: np.ndarray,
+    options: FeedbackNashOptions | dict | None = None,
+) -> FeedbackNashCheck:
+    """Check the policy ``U_k(X) = U*_k - P_k (X - X*_k) - a_k`` (module docstring).
+
+    ``states`` ``(n_x,)`` and ``controls`` ``(n_u,)``: the trajectory ``(X*, U*)`` in the
+    flat game layout; ``gains`` ``(K, nu, nx)`` and ``feedforward`` ``(K, nu)`` in the
+    joint stage layout of :func:`solvers.ilq.to_stages` (an iLQ result's
+    ``info["gains"]`` and ``info["feedforward"]``). One problem at a time.
+    """
+    from .ilq import to_stages
+
+    opts = check_options(FeedbackNashOptions, options, "feedback_nash")
+    t0 = time.perf_counter()
+    K, N = game.K, game.N
+    nx, nu = int(sum(game.nx)), int(sum(game.nu))
+    P = np.asarray(gains, float)
+    a = np.asarray(feedforward, float)
+    if P.shape != (K, nu, nx) or a.shape != (K, nu):
+        raise SpecError(
+            "gains/feedforward",
+            f"expected shapes ({K}, {nu}, {nx}) and ({K}, {nu}), got {P.shape} and {a.shape}",
+        )
+    X, U = to_stages(game, np.asarray(states, float), np.asarray(controls, float))
+    f = _closed_loop(game)
+    p = np.asarray(p, float).reshape(-1)
+    Xr, Ur = X.T, U.T
+
+    def costs(Pm, am):
+        return np.asarray(f(p, Xr, Ur, Pm.reshape(K, nu * nx).T, am.T), float).ravel()
+
+    base = costs(P, a)
+    uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
+    rng = np.random.default_rng(opts.seed)
+    gain = np.full(N, -np.inf)
+    trials = 0
+    for i in range(N):
+        rows = slice(int(uo[i]), int(uo[i + 1]))
+        dirs = []
+        for _ in range(opts.n_random):
+            dP = np.zeros_like(P)
+            da = np.zeros_like(a)
+            dP[:, rows] = rng.standard_normal(P[:, rows].shape)
+            da[:, rows] = rng.standard_normal(a[:, rows].shape)
+            dirs.append((dP, da))
+        for _ in range(opts.n_coordinate):
+            dP = np.zeros_like(P)
+            da = np.zeros_like(a)
+            da[rng.integers(K), int(uo[i]) + rng.integers(game.nu[i])] = 1.0
+            dirs.append((dP, da))
+        for dP, da in dirs:
+            for s in opts.scales:
+                for sign in (1.0, -1.0):
+                    c = costs(P + sign * s * dP, a + sign * s * da)
+                    trials += 1
+                    drop = base[i] - c[i] if np.isfinite(c[i]) else -np.inf
+                    gain[i] = max(gain[i], drop)
+    gain = np.where(np.isfinite(gain), gain, 0.0)
+    per = gain <= opts.tol * (1.0 + np.abs(base))
+    ok_agent = per & np.isfinite(base)
+    return FeedbackNashCheck(
+        ok=bool(ok_agent.all()),
+        costs=base,
+        gain=gain,
+        ok_agent=ok_agent,
+        trials=trials // max(N, 1),
+        tol=opts.tol,
+        time_s=time.perf_counter() - t0,
+    )
