@@ -17,10 +17,13 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 # The main job: solver comparison on two built-in games, then the end-to-end learning
-# pipeline (small RPI set -> train ours and SC -> evaluate with CV); a few minutes.
+# pipeline (small RPI set -> train ours and SC -> evaluate with CV), then two closed-loop
+# left turns with the game oracle in the loop; a few minutes.
 demo: $(STAMP)
 	$(BIN)/epo demo --out results/demo
 	$(BIN)/epo pipeline --out results/pipeline
+	$(BIN)/epo simulate left-turn --planner oracle --tracker mpc --episodes 2 --workers 2 --no-progress --out results/closed_loop
+	@echo "closed loop: results/closed_loop/summary.md, figure results/closed_loop/figures/episode-00000.png (animation: episode-00000.gif)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile

@@ -7,7 +7,9 @@ warm-up run; forward + backward of ``loss = mean(x^2) + mean(u^2)``):
    problems, S = 2, alpha = 0.3, lambda = 10; features goal, velocity, acceleration,
    velocity/acceleration/turn-rate bounds, turn rate; collision every step) and the same
    game with N in {4, 8, 12}. The layer with each Gauss-Newton backend (dense;
-   structured; structured + generated C for the backend and the layer's VJP functions)
+   structured; structured + generated C for the backend and the layer's VJP functions;
+   fused, :class:`solvers.fast_gn.FusedGN`, interpreted and + generated C, where it does
+   not delegate to the structured backend)
    next to a plain-torch unrolled LM (the same energy re-implemented in torch, ``J`` by
    ``torch.func.vmap(jacrev)``, ``torch.linalg.solve``, autograd through everything) and,
    if it is installed, Theseus (``theseus-ai`` 0.2.3, ``AutoDiffCostFunction`` on the same
@@ -328,6 +330,23 @@ def timed(fn, U0, P, repeats, best=False):
     return statistics.median(fw), statistics.median(bw)
 
 
+def cpu_time(fn, U0, P, repeats):
+    """Median process CPU seconds (all threads) of one forward + backward of ``fn(U0, P)``.
+
+    On a shared machine the wall time includes waiting for a core; the CPU time does not.
+    """
+    out = []
+    for i in range(repeats + 1):
+        u = U0.detach().clone().requires_grad_()
+        p = P.detach().clone().requires_grad_()
+        c0 = time.process_time()
+        U, X = fn(u, p)
+        (X.square().mean() + U.square().mean()).backward()
+        if i:  # first run is a warm-up
+            out.append(time.process_time() - c0)
+    return statistics.median(out)
+
+
 def grads(fn, U0, P):
     u = U0.detach().clone().requires_grad_()
     p = P.detach().clone().requires_grad_()
@@ -345,6 +364,7 @@ def layer_fn(layer):
 
 
 def backends(game, threads, with_dense=True):
+    from solvers.fast_gn import FusedGN
     from solvers.structured import StructuredGN
 
     out = {}
@@ -352,6 +372,10 @@ def backends(game, threads, with_dense=True):
         out["dense"] = (DenseGN(game, threads=threads), False)
     out["structured"] = (StructuredGN(game, threads=threads), False)
     out["structured+C"] = (StructuredGN(game, threads=threads, compiled=True), True)
+    fused = FusedGN(game, threads=threads)
+    if fused.fallback is None:  # else it delegates to StructuredGN: nothing new to time
+        out["fused"] = (fused, False)
+        out["fused+C"] = (FusedGN(game, threads=threads, compiled=True), True)
     return out
 
 
@@ -382,6 +406,8 @@ def bench_rpi(args):
         mem = dense_bytes(game, 64)
         dense_ok = mem < args.max_dense_gb * 2**30
         res: dict[str, tuple] = {}
+        layer_err: dict[str, float] = {}
+        layer_cpu: dict[str, float] = {}
         ref = None
         t_build = time.perf_counter()
         bes = backends(game, args.threads, with_dense=dense_ok)
@@ -390,8 +416,14 @@ def bench_rpi(args):
             progress(f"N={N} layer [{name}]")
             layer = GameLayer(game, opts, backend=be, compiled=compiled)
             fn = layer_fn(layer)
+            got = grads(fn, Ut, Pt)
             if ref is None:
-                ref = grads(fn, Ut, Pt)
+                ref = got
+            layer_err[name] = max(
+                float((a - b).abs().max() / (b.abs().max() + 1e-30))
+                for a, b in zip(got, ref, strict=True)
+            )
+            layer_cpu[name] = cpu_time(fn, Ut, Pt, args.repeats)
             res[name] = timed(fn, Ut, Pt, args.repeats), timed(fn, Ut, Pt, args.repeats, best=True)
         torch_rows = {}
         model = TorchRPI(game)
@@ -429,7 +461,8 @@ def bench_rpi(args):
             except Exception as e:  # noqa: BLE001 - report and go on
                 print(f"  {name} failed for N={N}: {type(e).__name__}: {str(e)[:200]}")
         rows.append((N, game, res, torch_rows, dense_ok, mem, t_build))
-        be, compiled = bes["structured+C"]
+        fastest = "fused+C" if "fused+C" in bes else "structured+C"
+        be, compiled = bes[fastest]
         split = breakdown(game, be, compiled, args, Pt, Ut)
         print(
             f"\nN = {N}: n_u = {game.n_u}, n_r = {game.n_r}, backend build {t_build:.1f} s, "
@@ -444,18 +477,21 @@ def bench_rpi(args):
             print(f"  (torch baselines skipped for N = {N}: --max-torch-n {args.max_torch_n})")
         print(
             f"  {'variant':28s} {'fwd ms':>9s} {'bwd ms':>9s} {'total ms':>9s}   vs plain torch   "
-            "max rel. diff to layer (u, x, du_init, dp)"
+            "max rel. diff to layer (u, x, du_init, dp)   [layer: CPU ms, median]"
         )
         print(f"  {'':28s} {'median':>9s} {'median':>9s} {'med/best':>9s}")
         base = next((t for n, (t, _) in torch_rows.items() if n == "plain torch"), None)
         for name, ((f, b), (fb, bb)) in res.items():
             ratio = f"{(base[0] + base[1]) / (f + b):8.1f}x" if base else "        -"
-            print(f"  layer [{name:19s}] {fmt(f)} {fmt(b)} {fmt(f + b)}   {ratio}")
+            print(
+                f"  layer [{name:19s}] {fmt(f)} {fmt(b)} {fmt(f + b)}   {ratio}        "
+                f"{layer_err[name]:.1e}   cpu {layer_cpu[name] * 1e3:.1f}"
+            )
             print(f"  {'':28s} {'':9s} {'':9s} {fmt(fb + bb)}   (best of {args.repeats})")
         for name, ((f, b), err) in torch_rows.items():
             ratio = f"{(base[0] + base[1]) / (f + b):8.1f}x" if base else "        -"
             print(f"  {name:28s} {fmt(f)} {fmt(b)} {fmt(f + b)}   {ratio}        {err:.1e}")
-        print("  where the time goes, layer [structured+C], ms per call of the layer:")
+        print(f"  where the time goes, layer [{fastest}], ms per call of the layer:")
         print("\n".join(split))
     return rows
 

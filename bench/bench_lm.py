@@ -4,6 +4,7 @@ Not a test. Run from the repository root::
 
     .venv/bin/python bench/bench_lm.py            # N in {2, 4, 8, 12}, K = 40, batches 1 and 64
     .venv/bin/python bench/bench_lm.py --quick    # smoke run: N = 2, batches 1 and 16
+    .venv/bin/python bench/bench_lm.py --agents 2 4 --batches 1 64 --paths struct struct-C fused fused-C
 
 Games: ``N`` unicycles on a circle crossing to the opposite side (the construction of
 ``tests/helpers.crossing_spec``: goal, velocity, acceleration, turn rate, three soft
@@ -17,7 +18,10 @@ per iteration with adaptive damping)::
 
 Paths: ``dense`` (:class:`DenseGN`, interpreted CasADi, one thread), ``dense-thr`` (the same
 with ``map`` threads), ``struct`` (:class:`StructuredGN`, interpreted, one thread),
-``struct-C`` (:class:`StructuredGN` with generated C, one thread), and the reference
+``struct-C`` (:class:`StructuredGN` with generated C, one thread), ``fused`` and ``fused-C``
+(:class:`solvers.fast_gn.FusedGN`: the whole step as CasADi functions, interpreted or as
+generated C, one thread; ``fused x struct`` columns give their speed-up over the matching
+structured path), and the reference
 ``numpy``: J from the game's CasADi ``jacobian`` function (interpreted), ``r`` from
 ``residual``, then numpy ``J'J``, ``J'r``, Cholesky solve and ``energy``, one thread.
 Times are medians over repeats (the paths take turns within each repeat) of wall-clock
@@ -66,8 +70,8 @@ def _parse(argv=None):
     ap.add_argument(
         "--paths",
         nargs="+",
-        default=["dense", "dense-thr", "struct", "struct-C", "numpy"],
-        choices=["dense", "dense-thr", "struct", "struct-C", "numpy"],
+        default=["dense", "dense-thr", "struct", "struct-C", "fused", "fused-C", "numpy"],
+        choices=["dense", "dense-thr", "struct", "struct-C", "fused", "fused-C", "numpy"],
     )
     ap.add_argument(
         "--cache-dir",
@@ -92,6 +96,7 @@ if ARGS is not None:
 import numpy as np  # noqa: E402
 
 from solvers.batch import BatchFunction, default_threads  # noqa: E402
+from solvers.fast_gn import FusedGN  # noqa: E402
 from solvers.lm import DenseGN  # noqa: E402
 from solvers.structured import StructuredGN  # noqa: E402
 from tests.helpers import crossing_game  # noqa: E402
@@ -182,6 +187,19 @@ def main(args) -> int:
                 f"N={N}: struct-C library ready in {time.perf_counter() - tc:.1f} s "
                 "(compile on first use, then loaded from the cache)"
             )
+        if "fused" in args.paths:
+            backends["fused"] = FusedGN(game, threads=1)
+            if backends["fused"].fallback:
+                notes.append(
+                    f"N={N}: fused delegates to StructuredGN: {backends['fused'].fallback}"
+                )
+        if "fused-C" in args.paths:
+            tc = time.perf_counter()
+            backends["fused-C"] = FusedGN(game, threads=1, compiled=True, cache_dir=args.cache_dir)
+            notes.append(
+                f"N={N}: fused-C library ready in {time.perf_counter() - tc:.1f} s "
+                "(compile on first use, then loaded from the cache)"
+            )
         ref = NumpyDenseGN(game) if "numpy" in args.paths else None
         print(
             f"# N={N}: {game} built in {time.perf_counter() - t0:.1f} s",
@@ -244,6 +262,10 @@ def table(rows, paths, threads, K, wall=True):
     head = ["N", "n_u", "B"] + [f"{names.get(p, p)} ms" for p in paths]
     if "numpy" in paths:
         head += [f"{p} x ref" for p in paths if p != "numpy"]
+    pairs = [
+        (f, s) for f, s in (("fused", "struct"), ("fused-C", "struct-C")) if {f, s} <= set(paths)
+    ]
+    head += [f"{f} x {s}" for f, s in pairs]
     head.append("max rel diff")
     out = [
         f"Median {label} per LM step per problem, K = {K}:",
@@ -256,6 +278,7 @@ def table(rows, paths, threads, K, wall=True):
         vals = [f"{cells[p][i]:.4f}{'*' if cells[p][2] else ''}" for p in paths]
         if "numpy" in paths:
             vals += [f"{cells['numpy'][i] / cells[p][i]:.2f}" for p in paths if p != "numpy"]
+        vals += [f"{cells[s][i] / cells[f][i]:.2f}" for f, s in pairs]
         out.append("| " + " | ".join([str(N), str(n_u), str(B)] + vals + [f"{err:.1e}"]) + " |")
     return "\n".join(out)
 

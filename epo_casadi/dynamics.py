@@ -1,4 +1,8 @@
-"""Per-agent discrete-time dynamics ``x_next = f(x, u, dt)`` (explicit Euler).
+"""Per-agent discrete-time dynamics ``x_next = f(x, u, dt)``.
+
+The built-in models below integrate with explicit Euler; a user's model (a subclass of
+:class:`Dynamics` in its own module, see :mod:`epo_casadi.registry` and
+``docs/extending.md``) may integrate as it likes, e.g. RK4 substeps inside ``step``.
 
 Every model exposes its step as a named :class:`casadi.Function`
 ``f(x, u, dt) -> x_next`` plus the semantic quantities the energy features read
@@ -22,13 +26,21 @@ wheelbase ``L``: ``theta' = v tan(delta) / L``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import casadi as ca
 
 from .errors import SpecError
+from .registry import DYNAMICS
 
-__all__ = ["Dynamics", "Unicycle", "DoubleIntegrator", "KinematicBicycle", "make_dynamics"]
+__all__ = [
+    "Dynamics",
+    "JointDynamics",
+    "Unicycle",
+    "DoubleIntegrator",
+    "KinematicBicycle",
+    "make_dynamics",
+]
 
 
 @dataclass(frozen=True)
@@ -82,7 +94,18 @@ class Dynamics:
         )
 
     def to_dict(self) -> dict:
-        return {"type": self.name}
+        """``{"type": <registered name or module:Class>, <option>: value, ...}``."""
+        d = {"type": DYNAMICS.type_name(type(self))}
+        for f in fields(self):
+            if f.init and f.name not in DYNAMICS.fixed:
+                v = getattr(self, f.name)
+                d[f.name] = _plain(v)
+        return d
+
+
+def _plain(v):
+    """Tuples as lists, recursively (YAML and JSON writers take lists)."""
+    return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
 
 
 @dataclass(frozen=True)
@@ -163,27 +186,31 @@ class KinematicBicycle(Dynamics):
     def turn_rate(self, x, u):
         return x[2] * ca.tan(u[1]) / self.wheelbase
 
-    def to_dict(self) -> dict:
-        return {"type": self.name, "wheelbase": self.wheelbase}
+
+DYNAMICS.bind(Dynamics, (Unicycle, DoubleIntegrator, KinematicBicycle))
 
 
-_MODELS = {"unicycle": Unicycle, "double_integrator": DoubleIntegrator, "bicycle": KinematicBicycle}
+@dataclass(frozen=True)
+class JointDynamics:
+    """Base of coupled dynamics: one model over several agents' states and controls.
+
+    A subclass sets ``name`` and defines ``step(xs, us, dt) -> next states``: ``xs`` and
+    ``us`` are lists of the member agents' state and control columns (in the order of
+    :attr:`epo_casadi.game.Coupling.agents`), the result one next-state column per member
+    (same sizes). Each member keeps its own :class:`Dynamics` for its sizes, state names
+    and the semantic quantities features read (position, speed, ...); its own ``step`` is
+    not used. Examples: a tow truck and its trailer, agents sharing a state, the linear
+    ``x_{k+1} = A x_k + sum_i B_i u_{i,k}`` of textbook LQ games.
+    """
+
+    name = "joint"
+
+    def step(self, xs, us, dt):  # pragma: no cover - abstract
+        raise NotImplementedError
 
 
 def make_dynamics(spec: str | dict | Dynamics) -> Dynamics:
-    """Dynamics from a name (``"unicycle"``), a dict (``{"type": "bicycle", "wheelbase": 3}``) or itself."""
-    if isinstance(spec, Dynamics):
-        return spec
-    if isinstance(spec, str):
-        spec = {"type": spec}
-    if not isinstance(spec, dict) or "type" not in spec:
-        raise SpecError("dynamics", f"expected a model name or a mapping with 'type', got {spec!r}")
-    kind = spec["type"]
-    if kind not in _MODELS:
-        raise SpecError("dynamics.type", f"expected one of {sorted(_MODELS)}, got {kind!r}")
-    extra = {k: v for k, v in spec.items() if k != "type"}
-    allowed = {"wheelbase"} if kind == "bicycle" else set()
-    unknown = set(extra) - allowed
-    if unknown:
-        raise SpecError("dynamics", f"unknown option(s) {sorted(unknown)} for '{kind}'")
-    return _MODELS[kind](**extra)
+    """Dynamics from a name (``"unicycle"``), a mapping (``{"type": "bicycle", "wheelbase": 3}``,
+    ``{"type": "my_pkg.models:Boat"}``) or an instance of any :class:`Dynamics` subclass
+    (see :mod:`epo_casadi.registry`)."""
+    return DYNAMICS.construct(spec, "dynamics")

@@ -45,10 +45,14 @@ import casadi as ca
 
 from .dynamics import Dynamics
 from .errors import SpecError, short_repr
+from .registry import FEATURES, NAME_RE
+from .registry import PAIR_FEATURES as _PAIR_REGISTRY
 
 __all__ = [
     "AgentContext",
     "Feature",
+    "ParamSpec",
+    "RESERVED_BLOCKS",
     "PairFeature",
     "Goal",
     "Velocity",
@@ -97,9 +101,79 @@ def _bound(q, lower: float, upper: float):
     return ca.fmax(0, q - upper) + ca.fmax(0, lower - q)
 
 
+#: parameter block prefixes of the game itself, not available to a feature's own blocks
+RESERVED_BLOCKS = ("x0", "goal", "vref", "path", "w")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """A parameter block a feature declares (:meth:`Feature.params`).
+
+    The game adds one block ``<name>.<agent>`` of ``size`` entries per agent whose
+    features declare it (group ``"feature"`` of :class:`epo_casadi.game.ParamLayout`),
+    with ``default`` as its default value; the feature reads it as ``ctx.refs[name]``
+    (an SX column). ``entries`` names the entries (``<name>.<agent>.<entry>``; default:
+    ``0, 1, ...``, none for a block of one entry). Like every block it can be set per
+    solve through ``p``, predicted by a network and changed with ``--set``.
+    """
+
+    name: str
+    size: int
+    default: tuple[float, ...] | float = 0.0
+    entries: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        where = f"params.{self.name}"
+        if not isinstance(self.name, str) or not NAME_RE.match(self.name):
+            raise SpecError(
+                "params.name",
+                f"expected a block name of letters, digits and '_', got {short_repr(self.name)}",
+            )
+        if self.name in RESERVED_BLOCKS:
+            raise SpecError(
+                where, f"{self.name!r} is a block of the game itself; reserved: {RESERVED_BLOCKS}"
+            )
+        n = self.size
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise SpecError(f"{where}.size", f"expected an integer >= 1, got {short_repr(n)}")
+        d = self.default
+        d = (d,) * n if isinstance(d, (int, float)) and not isinstance(d, bool) else d
+        try:
+            d = tuple(float(v) for v in d)
+        except (TypeError, ValueError):
+            raise SpecError(
+                f"{where}.default", f"expected {n} numbers, got {short_repr(self.default)}"
+            ) from None
+        if len(d) != n or not all(math.isfinite(v) for v in d):
+            raise SpecError(
+                f"{where}.default", f"expected {n} finite numbers, got {short_repr(self.default)}"
+            )
+        object.__setattr__(self, "default", d)
+        if self.entries is not None:
+            e = tuple(self.entries)
+            if len(e) != n or not all(isinstance(x, str) and NAME_RE.match(x) for x in e):
+                raise SpecError(
+                    f"{where}.entries", f"expected {n} entry names, got {short_repr(self.entries)}"
+                )
+            object.__setattr__(self, "entries", e)
+
+    def entry_names(self, agent: str) -> list[str]:
+        """One readable name per entry of the block of ``agent``."""
+        block = f"{self.name}.{agent}"
+        if self.entries is not None:
+            return [f"{block}.{e}" for e in self.entries]
+        return [block] if self.size == 1 else [f"{block}.{j}" for j in range(self.size)]
+
+
 @dataclass(frozen=True)
 class Feature:
-    """Base of own features. ``label`` names the weight (defaults to the kind)."""
+    """Base of own features. ``label`` names the weight (defaults to the kind).
+
+    A subclass (built-in or a user's, see :mod:`epo_casadi.registry`) sets ``kind`` and
+    defines ``steps(K)`` and ``residual(ctx)``; ``refs()`` names the agent's reference
+    blocks it reads (``goal``, ``vref``, ``path``) and ``params()`` declares blocks of
+    its own (:class:`ParamSpec`); both arrive in ``ctx.refs``.
+    """
 
     kind: ClassVar[str] = ""
     label: str | None = None
@@ -110,14 +184,30 @@ class Feature:
         return self.label or self.kind
 
     def refs(self) -> dict[str, int]:
-        """Reference parameters this feature reads: name -> size."""
+        """Reference parameters of the agent this feature reads (``goal``, ``vref``,
+        ``path``): name -> size."""
         return {}
+
+    def params(self) -> tuple[ParamSpec, ...]:
+        """Parameter blocks of this feature's own (see :class:`ParamSpec`)."""
+        return ()
 
     def steps(self, K: int) -> list[int]:
         raise NotImplementedError
 
     def residual(self, ctx: AgentContext):
         raise NotImplementedError
+
+    def formula(self, s) -> Any:
+        """The residual at one symbolic step, for ``epo inspect`` (a CasADi expression or str).
+
+        ``s`` (:class:`epo_casadi.inspect.FormulaSymbols`) looks like an
+        :class:`AgentContext` whose ``X[:, k]`` / ``U[:, k]`` take a step *label*
+        (``"k"``, ``"k+1"``, ``s.K``) and give named symbols (``v_k``); ``s.refs`` holds the
+        reference entries by parameter name (``goal.robot.x``). ``None`` (this default):
+        inspect shows the residual at the first step of a short horizon instead.
+        """
+        return None
 
     def check(self, dynamics: Dynamics) -> None:
         """Raise :class:`SpecError` when the feature does not apply to ``dynamics``."""
@@ -131,16 +221,35 @@ class Feature:
         x = ca.SX.sym("x", dynamics.nx, 3)
         u = ca.SX.sym("u", dynamics.nu, 2)
         refs = {n: ca.SX.sym(n, s) for n, s in self.refs().items()}
-        self.residual(AgentContext(dynamics, x, u, 0.1, refs))
+        refs.update({b.name: ca.SX.sym(b.name, b.size) for b in self.params()})
+        try:
+            r = self.residual(AgentContext(dynamics, x, u, 0.1, refs))
+        except SpecError:
+            raise
+        except Exception as e:  # a user's residual that does not build is a spec error
+            msg = (str(e).strip().splitlines() or [""])[-1]
+            raise SpecError(
+                self.key, f"residual() fails on a symbolic trajectory ({type(e).__name__}: {msg})"
+            ) from None
+        if not isinstance(r, (ca.SX, ca.MX, ca.DM)) or (r.numel() and r.shape[1] != 1):
+            raise SpecError(
+                self.key, f"residual() must return a CasADi column vector, got {short_repr(r)}"
+            )
 
     def to_dict(self) -> dict:
-        d = {"type": self.kind}
+        """``{"type": <registered name or module:Class>, <field>: value, ...}``."""
+        d = {"type": FEATURES.type_name(type(self))}
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name == "label" and v is None:
                 continue
-            d[f.name] = v
+            d[f.name] = _plain(v)
         return d
+
+
+def _plain(v):
+    """Tuples as lists, recursively (YAML and JSON writers take lists)."""
+    return [_plain(x) for x in v] if isinstance(v, (tuple, list)) else v
 
 
 def _cols(fn, ks):
@@ -160,6 +269,9 @@ class Goal(Feature):
     def residual(self, ctx):
         return ctx.dynamics.position(ctx.X[:, ctx.K]) - ctx.refs["goal"]
 
+    def formula(self, s):
+        return self.residual(s)
+
 
 @dataclass(frozen=True)
 class Velocity(Feature):
@@ -171,6 +283,9 @@ class Velocity(Feature):
     def residual(self, ctx):
         return _cols(lambda k: ctx.dynamics.velocity(ctx.X[:, k]), self.steps(ctx.K))
 
+    def formula(self, s):
+        return s.dynamics.velocity(s.X[:, "k"])
+
 
 @dataclass(frozen=True)
 class Acceleration(Feature):
@@ -181,6 +296,9 @@ class Acceleration(Feature):
 
     def residual(self, ctx):
         return _cols(lambda k: ctx.dynamics.acceleration(ctx.U[:, k]), self.steps(ctx.K))
+
+    def formula(self, s):
+        return s.dynamics.acceleration(s.U[:, "k"])
 
 
 @dataclass(frozen=True)
@@ -196,6 +314,10 @@ class Jerk(Feature):
             lambda k: (acc(ctx.U[:, k + 1]) - acc(ctx.U[:, k])) / ctx.dt, self.steps(ctx.K)
         )
 
+    def formula(self, s):
+        acc = s.dynamics.acceleration
+        return (acc(s.U[:, "k+1"]) - acc(s.U[:, "k"])) / s.dt
+
 
 @dataclass(frozen=True)
 class TurnRate(Feature):
@@ -207,6 +329,9 @@ class TurnRate(Feature):
     def residual(self, ctx):
         tr = ctx.dynamics.turn_rate
         return _cols(lambda k: tr(ctx.X[:, k], ctx.U[:, k]), self.steps(ctx.K))
+
+    def formula(self, s):
+        return s.dynamics.turn_rate(s.X[:, "k"], s.U[:, "k"])
 
 
 @dataclass(frozen=True)
@@ -224,6 +349,10 @@ class TurnAcceleration(Feature):
             self.steps(ctx.K),
         )
 
+    def formula(self, s):
+        tr, X, U = s.dynamics.turn_rate, s.X, s.U
+        return (tr(X[:, "k+1"], U[:, "k+1"]) - tr(X[:, "k"], U[:, "k"])) / s.dt
+
 
 @dataclass(frozen=True)
 class ReferenceVelocity(Feature):
@@ -239,6 +368,9 @@ class ReferenceVelocity(Feature):
         return _cols(
             lambda k: ctx.dynamics.speed(ctx.X[:, k]) - ctx.refs["vref"], self.steps(ctx.K)
         )
+
+    def formula(self, s):
+        return s.dynamics.speed(s.X[:, "k"]) - s.refs["vref"]
 
 
 @dataclass(frozen=True)
@@ -286,6 +418,14 @@ class Path(Feature):
 
         return _cols(dist, self.steps(ctx.K))
 
+    def formula(self, s):
+        q = s.dynamics.position(s.X[:, "k"])
+        return (
+            f"min over segments j = 0..{self.points - 2} of the smooth distance "
+            f"sqrt(|{q} - proj_j|^2 + 1e-9), proj_j = {q} clamped onto the segment "
+            f"(P_j, P_j+1) of {s.ref_name('path')} = (x0, y0, x1, y1, ...)"
+        )
+
 
 @dataclass(frozen=True)
 class _BoundFeature(Feature):
@@ -307,6 +447,13 @@ class _BoundFeature(Feature):
         lo = -1e300 if math.isinf(lo) else lo
         hi = 1e300 if math.isinf(hi) else hi
         return _cols(lambda k: _bound(self._q(ctx, k), lo, hi), self.steps(ctx.K))
+
+    def formula(self, s):
+        q, lo, hi = self._q(s, "k"), float(self.lower), float(self.upper)
+        parts = ([ca.fmax(0, q - hi)] if math.isfinite(hi) else []) + (
+            [ca.fmax(0, lo - q)] if math.isfinite(lo) else []
+        )
+        return parts[0] if len(parts) == 1 else parts[0] + parts[1]
 
 
 @dataclass(frozen=True)
@@ -362,13 +509,19 @@ class PairFeature:
     def residual(self, a: AgentContext, b: AgentContext):
         raise NotImplementedError
 
+    def formula(self, a, b) -> Any:
+        """The residual of a pair at one symbolic step (see :meth:`Feature.formula`); ``a``
+        and ``b`` name their symbols by agent (``robot.x_k``). ``None``: generic display."""
+        return None
+
     def to_dict(self) -> dict:
-        d = {"type": self.kind}
+        """``{"type": <registered name or module:Class>, <field>: value, ...}``."""
+        d = {"type": _PAIR_REGISTRY.type_name(type(self))}
         for f in fields(self):
             v = getattr(self, f.name)
             if v is None:
                 continue
-            d[f.name] = [list(p) for p in v] if f.name == "pairs" else v
+            d[f.name] = _plain(v)
         return d
 
 
@@ -405,10 +558,15 @@ class Collision(PairFeature):
             self.steps(a.K),
         )
 
+    def formula(self, a, b):
+        reach = a.radius + b.radius + float(self.margin)
+        pa, pb = a.dynamics.position(a.X[:, "k"]), b.dynamics.position(b.X[:, "k"])
+        return ca.fmax(0, reach - smooth_distance(pa, pb))
 
-OWN_FEATURES: dict[str, type[Feature]] = {
-    c.kind: c
-    for c in (
+
+FEATURES.bind(
+    Feature,
+    (
         Goal,
         Velocity,
         Acceleration,
@@ -420,47 +578,21 @@ OWN_FEATURES: dict[str, type[Feature]] = {
         VelocityBound,
         AccelerationBound,
         TurnRateBound,
-    )
-}
-PAIR_FEATURES: dict[str, type[PairFeature]] = {Collision.kind: Collision}
-
-
-def _construct(registry: dict, spec: Any, where: str):
-    if isinstance(spec, tuple(registry.values())):
-        return spec
-    if isinstance(spec, str):
-        spec = {"type": spec}
-    if not isinstance(spec, dict) or "type" not in spec:
-        raise SpecError(
-            where, f"expected a feature name or a mapping with 'type', got {short_repr(spec)}"
-        )
-    kind = spec["type"]
-    if kind not in registry:
-        raise SpecError(
-            f"{where}.type",
-            f"unknown feature {short_repr(kind)}; expected one of {sorted(registry)}",
-        )
-    cls = registry[kind]
-    names = {f.name for f in fields(cls)}
-    opts = {k: v for k, v in spec.items() if k != "type"}
-    unknown = set(opts) - names
-    if unknown:
-        raise SpecError(
-            where,
-            f"unknown option(s) {sorted(unknown)} for feature '{kind}'; allowed: {sorted(names)}",
-        )
-    if "pairs" in opts and opts["pairs"] is not None:
-        opts["pairs"] = tuple(tuple(p) for p in opts["pairs"])
-    try:
-        return cls(**opts)
-    except TypeError as e:  # wrong value types
-        raise SpecError(where, str(e)) from None
+    ),
+)
+_PAIR_REGISTRY.bind(PairFeature, (Collision,))
+#: own features by name: the built-ins and every registered one (the registry's live table)
+OWN_FEATURES: dict[str, type[Feature]] = FEATURES.table
+#: pair features by name (the registry's live table)
+PAIR_FEATURES: dict[str, type[PairFeature]] = _PAIR_REGISTRY.table
 
 
 def make_feature(spec: Any, where: str = "feature") -> Feature:
-    """Own feature from a name, a mapping ``{"type": ..., options}`` or an instance."""
-    return _construct(OWN_FEATURES, spec, where)
+    """Own feature from a name, a mapping ``{"type": ..., options}`` (a registered name or
+    ``module:Class``) or an instance of any :class:`Feature` subclass."""
+    return FEATURES.construct(spec, where)
 
 
 def make_pair_feature(spec: Any, where: str = "pair_feature") -> PairFeature:
-    return _construct(PAIR_FEATURES, spec, where)
+    """Pair feature from a name, a mapping or an instance (see :func:`make_feature`)."""
+    return _PAIR_REGISTRY.construct(spec, where)

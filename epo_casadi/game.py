@@ -22,10 +22,12 @@ Rolled-out states ``x``, length ``n_x = (K+1) * sum_i nx_i``, same order::
 Parameters ``p``, length ``n_p``: one flat vector, described by :class:`ParamLayout`
     (:attr:`PotentialGame.params`), made of named blocks in this order:
     ``x0.<agent>`` (initial state, ``nx_i``), ``goal.<agent>`` (2), ``vref.<agent>`` (1),
-    ``path.<agent>`` (``2 P``, polyline vertices ``x0, y0, x1, y1, ...``), then the own
+    ``path.<agent>`` (``2 P``, polyline vertices ``x0, y0, x1, y1, ...``), the blocks
+    features declare themselves ``<name>.<agent>`` (:class:`epo_casadi.features.ParamSpec`;
+    agent order, then the order the agent's features declare them), then the own
     weights ``w.<agent>.<feature>`` (1 each) and the pair weights
     ``w.<agent_a>-<agent_b>.<feature>`` (1 each, ``a`` before ``b`` in agent order).
-    Reference blocks exist only for agents with a feature that reads them.
+    Reference and feature blocks exist only for agents with a feature that reads them.
 
 Residual ``r(u, p)`` and energy (paper Eq. (6)-(7))
     ``r`` stacks weighted feature residuals: for each agent, each own feature in the
@@ -64,18 +66,30 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .dynamics import Dynamics, make_dynamics
+from .dynamics import Dynamics, JointDynamics, make_dynamics
 from .errors import SpecError
 from .features import (
     AgentContext,
     Feature,
     PairFeature,
+    ParamSpec,
     Path,
     make_feature,
     make_pair_feature,
 )
 
-__all__ = ["AgentSpec", "GameSpec", "ParamBlock", "ParamLayout", "Term", "PotentialGame"]
+#: reference blocks of an agent that features may read through ``Feature.refs()``
+REFERENCES = ("goal", "vref", "path")
+
+__all__ = [
+    "AgentSpec",
+    "Coupling",
+    "GameSpec",
+    "ParamBlock",
+    "ParamLayout",
+    "Term",
+    "PotentialGame",
+]
 
 #: Largest horizon a game may have: the symbolic build and every solver's memory grow
 #: linearly with K (K = 2000: 4 s and 0.1 GB to build crossing2); 10^12 would end in an
@@ -122,6 +136,10 @@ class AgentSpec:
                 "agents.name", f"expected a non-empty name without '.' or '-', got {self.name!r}"
             )
         dyn = make_dynamics(self.dynamics)
+        if dyn.nx < 1:
+            raise SpecError(
+                f"{where}.dynamics", f"{type(dyn).__name__} declares no state_names (nx = 0)"
+            )
         object.__setattr__(self, "dynamics", dyn)
         r = self.radius
         if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r) or r < 0:
@@ -158,17 +176,55 @@ class AgentSpec:
                     f"{where}.features[{n}]", f"duplicate feature {f.key!r}; give one a 'label'"
                 )
             keys.add(f.key)
+            unknown = sorted(set(f.refs()) - set(REFERENCES))
+            if unknown:
+                raise SpecError(
+                    f"{where}.features[{n}]",
+                    f"feature {f.key!r} reads unknown reference(s) {unknown}; the agent has "
+                    f"{list(REFERENCES)}; declare blocks of its own with params() (ParamSpec)",
+                )
             try:
                 f.check(dyn)
             except SpecError as e:
                 raise SpecError(f"{where}.features[{n}]", e.message) from None
             feats.append(f)
         object.__setattr__(self, "features", tuple(feats))
+        self.param_specs()  # conflicting declarations are an error now, not at build
+
+    def param_specs(self) -> dict[str, ParamSpec]:
+        """The parameter blocks the agent's features declare (name -> spec, in order).
+
+        Two features may share a block by declaring it identically (same size, default
+        and entries); anything else under one name is a :class:`SpecError`.
+        """
+        out: dict[str, ParamSpec] = {}
+        for n, f in enumerate(self.features):
+            specs = f.params()
+            if not isinstance(specs, (tuple, list)) or not all(
+                isinstance(s, ParamSpec) for s in specs
+            ):
+                raise SpecError(
+                    f"agents[{self.name!r}].features[{n}].params",
+                    f"params() must return a tuple of ParamSpec, got {specs!r:.80}",
+                )
+            for s in specs:
+                if s.name in out and out[s.name] != s:
+                    raise SpecError(
+                        f"agents[{self.name!r}].features[{n}].params.{s.name}",
+                        f"declared twice with different size, default or entries: "
+                        f"{out[s.name]} and {s}",
+                    )
+                out[s.name] = s
+        return out
 
     def refs(self) -> dict[str, int]:
+        """Every parameter block of this agent its features read (name -> size): the
+        references (``goal``, ``vref``, ``path``) and the features' own blocks
+        (:meth:`param_specs`); each arrives in ``AgentContext.refs`` under its name."""
         out: dict[str, int] = {}
         for f in self.features:
             out.update(f.refs())
+        out.update({n: s.size for n, s in self.param_specs().items()})
         return out
 
     def to_dict(self) -> dict:
@@ -187,13 +243,45 @@ class AgentSpec:
 
 
 @dataclass(frozen=True)
+class Coupling:
+    """Coupled dynamics: ``model`` (a :class:`~epo_casadi.dynamics.JointDynamics`) steps
+    the states of ``agents`` (two or more names) together; see :class:`GameSpec`."""
+
+    agents: tuple[str, ...]
+    model: JointDynamics
+
+    def __post_init__(self):
+        names = tuple(self.agents) if isinstance(self.agents, (list, tuple)) else None
+        if not names or len(names) < 2 or not all(isinstance(a, str) for a in names):
+            raise SpecError(
+                "couplings.agents", f"expected two or more agent names, got {self.agents!r:.80}"
+            )
+        if len(set(names)) != len(names):
+            raise SpecError("couplings.agents", f"an agent appears twice in {list(names)}")
+        if not isinstance(self.model, JointDynamics):
+            raise SpecError(
+                "couplings.model",
+                f"expected a JointDynamics instance, got {type(self.model).__name__}",
+            )
+        object.__setattr__(self, "agents", names)
+
+
+@dataclass(frozen=True)
 class GameSpec:
-    """A game: agents, pairwise features, horizon ``K`` and step ``dt`` (seconds)."""
+    """A game: agents, pairwise features, horizon ``K`` and step ``dt`` (seconds).
+
+    ``couplings`` (optional, Python API only): :class:`Coupling` objects whose joint
+    models step several agents' states together (every agent in at most one); the
+    other agents step with their own dynamics. LM (its dense backend; the structured
+    ones hand coupled games to it), IPOPT, the iLQ game solver, the Nash certificate and
+    the layer accept coupled games.
+    """
 
     agents: Sequence[AgentSpec]
     pair_features: Sequence[PairFeature | str | dict] = ()
     horizon: int = 40
     dt: float = 0.1
+    couplings: Sequence[Coupling] = ()
 
     def __post_init__(self):
         agents = tuple(self.agents)
@@ -252,6 +340,46 @@ class GameSpec:
         object.__setattr__(self, "agents", agents)
         object.__setattr__(self, "pair_features", tuple(pfs))
         object.__setattr__(self, "dt", float(dt))
+        object.__setattr__(self, "couplings", self._check_couplings(agents))
+
+    def _check_couplings(self, agents) -> tuple[Coupling, ...]:
+        by_name = {a.name: a for a in agents}
+        seen: set[str] = set()
+        out = []
+        for n, c in enumerate(self.couplings):
+            where = f"couplings[{n}]"
+            if not isinstance(c, Coupling):
+                raise SpecError(where, f"expected a Coupling, got {type(c).__name__}")
+            for a in c.agents:
+                if a not in by_name:
+                    raise SpecError(
+                        f"{where}.agents", f"unknown agent {a!r}; expected one of {list(by_name)}"
+                    )
+                if a in seen:
+                    raise SpecError(f"{where}.agents", f"agent {a!r} is in two couplings")
+                seen.add(a)
+            dyn = [by_name[a].dynamics for a in c.agents]
+            xs = [ca.SX.sym(f"x_{a}", d.nx) for a, d in zip(c.agents, dyn, strict=True)]
+            us = [ca.SX.sym(f"u_{a}", d.nu) for a, d in zip(c.agents, dyn, strict=True)]
+            try:
+                nxt = list(c.model.step(xs, us, ca.SX.sym("dt")))
+            except SpecError:
+                raise
+            except Exception as e:
+                msg = (str(e).strip().splitlines() or [""])[-1]
+                raise SpecError(
+                    f"{where}.model", f"step() fails on symbolic states ({type(e).__name__}: {msg})"
+                ) from None
+            shapes = [tuple(x.shape) for x in nxt]
+            want = [(d.nx, 1) for d in dyn]
+            if shapes != want:
+                raise SpecError(
+                    f"{where}.model",
+                    f"step() must return one next-state column per agent, shapes {want}, "
+                    f"got {shapes}",
+                )
+            out.append(c)
+        return tuple(out)
 
     def pairs_of(self, pf: PairFeature) -> list[tuple[int, int]]:
         """Index pairs ``(a, b)``, ``a < b``, that ``pf`` couples, in agent order."""
@@ -277,7 +405,7 @@ class GameSpec:
 @dataclass(frozen=True)
 class ParamBlock:
     name: str  # e.g. "x0.robot", "w.robot.goal", "w.robot-ped.collision"
-    group: str  # "x0" | "goal" | "vref" | "path" | "w_own" | "w_pair"
+    group: str  # "x0" | "goal" | "vref" | "path" | "feature" | "w_own" | "w_pair"
     start: int
     size: int
     default: tuple[float, ...]
@@ -291,7 +419,7 @@ class ParamBlock:
 class ParamLayout:
     """Names, offsets and defaults of the flat parameter vector ``p``."""
 
-    GROUPS = ("x0", "goal", "vref", "path", "w_own", "w_pair")
+    GROUPS = ("x0", "goal", "vref", "path", "feature", "w_own", "w_pair")
 
     def __init__(self, blocks: Sequence[ParamBlock]):
         self.blocks: tuple[ParamBlock, ...] = tuple(blocks)
@@ -424,6 +552,12 @@ class PotentialGame:
         self.n_x = int(self.xoff[-1])
         self.params = self._layout()
         self.n_p = self.params.size
+        #: True when joint models step several agents together (GameSpec.couplings)
+        self.coupled = bool(spec.couplings)
+        idx = {n: i for i, n in enumerate(self.agent_names)}
+        self._couplings = [(tuple(idx[a] for a in c.agents), c.model) for c in spec.couplings]
+        coupled = {i for ids, _ in self._couplings for i in ids}
+        self._single = [i for i in range(self.N) if i not in coupled]
         self._build()
         self._cache: dict[str, ca.Function] = {}
         self._derived: dict = {}
@@ -463,6 +597,9 @@ class PotentialGame:
                     [f"path.{a.name}.{c}{j}" for j in range(n) for c in "xy"],
                 )
         for a in self.agents:
+            for s in a.param_specs().values():
+                add(f"{s.name}.{a.name}", "feature", s.default, s.entry_names(a.name))
+        for a in self.agents:
             for f in a.features:
                 add(f"w.{a.name}.{f.key}", "w_own", [f.weight], [f"w.{a.name}.{f.key}"])
         for pf in self.spec.pair_features:
@@ -484,18 +621,44 @@ class PotentialGame:
             ctxs.append(AgentContext(a.dynamics, X, U, self.dt, refs, float(a.radius)))
         return ctxs
 
+    def agent_steps(self, xs: Sequence, us: Sequence) -> list:
+        """Next states of every agent, ``[x_{i,k+1}]``, from stage ``k``'s per-agent states
+        ``xs`` and controls ``us`` (CasADi columns, agent order): each agent's own
+        dynamics, or the joint model of its coupling."""
+        out: list = [None] * self.N
+        for i in self._single:
+            out[i] = self.agents[i].dynamics.step(xs[i], us[i], self.dt)
+        for ids, model in self._couplings:
+            nxt = model.step([xs[i] for i in ids], [us[i] for i in ids], self.dt)
+            for i, x in zip(ids, nxt, strict=True):
+                out[i] = x
+        return out
+
+    def stage_step(self, x, u):
+        """The joint step of one stage: ``x`` (``sum nx_i``) and ``u`` (``sum nu_i``),
+        agents stacked in order -> next ``x``. Solvers that work per stage (iLQ) use it, so
+        coupled dynamics reach them."""
+        xo = np.concatenate([[0], np.cumsum(self.nx)]).astype(int)
+        uo = np.concatenate([[0], np.cumsum(self.nu)]).astype(int)
+        xs = [x[int(xo[i]) : int(xo[i + 1])] for i in range(self.N)]
+        us = [u[int(uo[i]) : int(uo[i + 1])] for i in range(self.N)]
+        return ca.vertcat(*self.agent_steps(xs, us))
+
     def _rollout_expr(self, u, p):
-        cols = []
-        for i, a in enumerate(self.agents):
+        xs = []
+        for a in self.agents:
             b = self.params[f"x0.{a.name}"]
-            xk = p[b.start : b.start + b.size]
-            U = ca.reshape(u[int(self.uoff[i]) : int(self.uoff[i + 1])], self.nu[i], self.K)
-            traj = [xk]
-            for k in range(self.K):
-                xk = a.dynamics.step(xk, U[:, k], self.dt)
-                traj.append(xk)
-            cols.append(ca.vertcat(*traj))
-        return ca.vertcat(*cols)
+            xs.append(p[b.start : b.start + b.size])
+        Us = [
+            ca.reshape(u[int(self.uoff[i]) : int(self.uoff[i + 1])], self.nu[i], self.K)
+            for i in range(self.N)
+        ]
+        trajs = [[x] for x in xs]
+        for k in range(self.K):
+            xs = self.agent_steps(xs, [U[:, k] for U in Us])
+            for traj, x in zip(trajs, xs, strict=True):
+                traj.append(x)
+        return ca.vertcat(*[ca.vertcat(*t) for t in trajs])
 
     def _pair_residuals(self, pf: PairFeature, pairs, ctxs: list[AgentContext]) -> list:
         """Unweighted residuals ``d`` of ``pf`` for every pair, in the order of ``pairs``.

@@ -17,6 +17,7 @@ import click
 from epo_casadi.errors import SpecError
 
 KINDS = ("epo", "sc", "vlstm")
+SPLITS = ("train", "val", "test")
 
 
 def _parse_set(items: tuple[str, ...]) -> dict:
@@ -59,6 +60,7 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
 @click.option(
     "--model",
     "kind",
+    type=click.Choice(KINDS),
     default="epo",
     show_default=True,
     help="epo (ours), sc (V-LSTM + SC) or vlstm (V-LSTM marginal).",
@@ -165,16 +167,22 @@ def train_cmd(
 @click.command("evaluate")
 @click.argument("runs", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
-@click.option("--split", default="test", show_default=True, help="train, val or test.")
 @click.option(
-    "--model", "baseline", default=None, help="A baseline to score as well: cv (constant velocity)."
+    "--split", type=click.Choice(SPLITS), default="test", show_default=True, help="Split to use."
+)
+@click.option(
+    "--model",
+    "baseline",
+    type=click.Choice(["cv"]),
+    default=None,
+    help="A baseline to score as well: cv (constant velocity).",
 )
 @click.option(
     "--out",
     "out",
     type=click.Path(path_type=Path),
     default=None,
-    help="Write OUT.md, OUT.csv and OUT_runs.csv.",
+    help="Directory: write OUT/results.md, OUT/results.csv and OUT/results_runs.csv.",
 )
 @click.option(
     "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
@@ -207,14 +215,27 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
     )
     click.echo(report.markdown(), nl=False)
     if out is not None:
-        paths = report.write(out)
+        if out.suffix == ".md":  # the old form: --out PREFIX.md wrote PREFIX.md, PREFIX.csv, ...
+            click.echo(
+                f"warning: --out {out}: a file name is deprecated and will be refused in a "
+                "later version; give a directory (writes DIR/results.md, DIR/results.csv, "
+                "DIR/results_runs.csv)",
+                err=True,
+            )
+            paths = report.write(out.with_suffix(""))
+        else:
+            if out.exists() and not out.is_dir():
+                raise SpecError("--out", f"expected a directory, {out} is a file")
+            paths = report.write(out / "results")
         click.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
 @click.command("show-predictions")
 @click.argument("run", type=click.Path(path_type=Path))
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
-@click.option("--split", default="test", show_default=True, help="train, val or test.")
+@click.option(
+    "--split", type=click.Choice(SPLITS), default="test", show_default=True, help="Split to use."
+)
 @click.option(
     "--index",
     type=int,

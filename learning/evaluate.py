@@ -27,14 +27,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from epo_casadi.errors import SpecError
 
 from .baselines import ConstantVelocity
 from .data import SceneDataset
-from .metrics import all_metrics
 from .models import ModelConfig
+from .scoring import METRICS, evaluate_model, predict
+from .train import load_model, torch_threads
 
 __all__ = [
     "METRICS",
@@ -47,54 +47,7 @@ __all__ = [
     "predict",
 ]
 
-METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR")
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES"}
-
-
-def predict(model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """``(pos, probs, out)`` of a predictor on a batch: probabilities joint ``(B, M)`` or marginal ``(B, N, M)``."""
-    out = model(batch)
-    if "marginal_logits" in out:
-        probs = torch.softmax(out["marginal_logits"], dim=-1)
-    else:
-        probs = torch.softmax(out["logits"], dim=-1)
-    return out["pos"], probs, out
-
-
-def evaluate_model(
-    model: torch.nn.Module,
-    data: SceneDataset,
-    batch_size: int = 64,
-    progress: bool = False,
-) -> dict[str, float]:
-    """Mean of every metric over ``data`` (and ``samples``); the model is put in eval mode."""
-    radii = torch.tensor([a.radius for a in data.game.agents], dtype=torch.float32)
-    was_training = model.training
-    model.eval()
-    sums = dict.fromkeys(METRICS, 0.0)
-    n = 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(data), unit="sample", desc="evaluate", leave=False, dynamic_ncols=True)
-    try:
-        with torch.no_grad():
-            for batch in data.batches(batch_size):
-                pos, probs, _ = predict(model, batch)
-                m = all_metrics(pos.float(), batch["gt"], probs.float(), radii)
-                for k in METRICS:
-                    sums[k] += float(m[k].sum())
-                n += pos.shape[0]
-                if bar is not None:
-                    bar.update(pos.shape[0])
-    finally:
-        if bar is not None:
-            bar.close()
-        model.train(was_training)
-    out = {k: (sums[k] / n if n else math.nan) for k in METRICS}
-    out["samples"] = n
-    return out
 
 
 def method_label(cfg: ModelConfig | None) -> str:
@@ -244,15 +197,11 @@ def evaluate(
     runs = [runs] if isinstance(runs, (str, os.PathLike)) else list(runs or [])
     if not runs and not cv:
         raise SpecError("runs", "expected at least one run directory (or cv=True)")
-    from .train import torch_threads
-
     with torch_threads(threads):
         return _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress)
 
 
 def _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress) -> EvalReport:
-    from .train import load_model
-
     data = SceneDataset(data_dir, split)
     if len(data) == 0:
         data.close()

@@ -7,9 +7,10 @@ initial joint strategies ``u_init`` (``(..., n_u)``) to optimized strategies ``u
 problem (``(...)``, int64, not differentiable; :data:`STATUS_CODES`, :func:`decode_status`).
 All leading dimensions (e.g. batch ``B`` x modes ``M``) are flattened into one batch of
 problems that are solved together by a Gauss-Newton backend of :mod:`solvers.lm`
-(:class:`solvers.lm.DenseGN` by default, any object with the same ``linearize`` /
-``solve`` / ``energy`` methods can be plugged in); CasADi evaluates every problem of the
-batch in one mapped call, never a Python loop per problem.
+(the one ``options.backend`` names: :class:`solvers.structured.StructuredGN` by default,
+:class:`solvers.gn.DenseGN` with ``backend="dense"``; any object with the same
+``linearize`` / ``solve`` / ``energy`` methods can be plugged in); CasADi evaluates every
+problem of the batch in one mapped call, never a Python loop per problem.
 
 Forward pass
     Each of the ``S`` steps (paper Sec. 4.2, App. F.3: ``S = 2``, ``alpha = 0.3``,

@@ -36,7 +36,9 @@ Predictors (:func:`build_model`):
   (zeros as initial strategies), ``goal_features=False`` (the goal term's weight is
   fixed to zero, so the game has no goal feature).
 - ``"sc"`` (V-LSTM + SC): the same encoder; controls are decoded directly per mode and
-  rolled out through the same dynamics (no game), trained with the scene loss.
+  rolled out through the game's own CasADi rollout (:class:`learning.bridge.GameRollout`:
+  the same dynamics as the game, built-in or a user's; no solve), trained with the scene
+  loss.
 - ``"vlstm"`` (V-LSTM marginal): per agent ``M`` position trajectories and per-agent mode
   logits, trained with the marginal minADE loss plus classification.
 """
@@ -53,6 +55,8 @@ from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
+from .bridge import GameRollout
+
 GOAL_DECODERS = ("given", "candidates", "regress")
 
 __all__ = [
@@ -66,7 +70,6 @@ __all__ = [
     "SCModel",
     "VLSTMModel",
     "Encoder",
-    "rollout_torch",
 ]
 
 
@@ -207,35 +210,6 @@ class Encoder(nn.Module):
         return self.norm2(z + out)
 
 
-def rollout_torch(
-    x0: torch.Tensor, U: torch.Tensor, dt: float, dynamics: str = "unicycle"
-) -> torch.Tensor:
-    """Euler rollout in torch: ``x0`` ``(..., 4)``, ``U`` ``(..., K, 2)`` -> states ``(..., K, 4)`` at 1..K.
-
-    The same equations as :mod:`epo_casadi.dynamics` (unicycle or double integrator),
-    used by the SC baseline, which predicts controls without a game.
-    """
-    xs = []
-    x = x0
-    for k in range(U.shape[-2]):
-        a, w = U[..., k, 0], U[..., k, 1]
-        if dynamics == "unicycle":
-            px, py, v, th = x.unbind(-1)
-            x = torch.stack(
-                [px + v * torch.cos(th) * dt, py + v * torch.sin(th) * dt, v + a * dt, th + w * dt],
-                -1,
-            )
-        elif dynamics == "double_integrator":
-            px, py, vx, vy = x.unbind(-1)
-            x = torch.stack([px + vx * dt, py + vy * dt, vx + a * dt, vy + w * dt], -1)
-        else:
-            raise ValueError(
-                f"dynamics: expected 'unicycle' or 'double_integrator', got {dynamics!r}"
-            )
-        xs.append(x)
-    return torch.stack(xs, -2)
-
-
 def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Candidate goal points ``(B, N, G, 2)`` and their mask ``(B, N, G)`` for every agent.
 
@@ -353,14 +327,15 @@ class GoalDecoder(nn.Module):
 class _Base(nn.Module):
     def __init__(self, cfg: ModelConfig, game: PotentialGame):
         super().__init__()
-        kinds = {a.dynamics.name for a in game.agents}
-        if len(kinds) != 1 or len(set(game.nu)) != 1:
+        if len(set(game.nx)) != 1 or len(set(game.nu)) != 1:
             raise ValueError(
-                "game: the decoders are shared across agents, so all agents need the same dynamics"
+                "game: the decoders are shared across agents, so all agents need dynamics "
+                f"with the same numbers of states and controls, got nx {game.nx}, nu {game.nu}"
             )
         self.cfg, self.game = cfg, game
         self.N, self.K, self.nu = game.N, game.K, game.nu[0]
-        self.dynamics = game.agents[0].dynamics.name
+        #: the game's own rollout as a torch op (any dynamics; see learning.bridge)
+        self.rollout = GameRollout(game)
         self.encoder = Encoder(cfg)
         W, M = cfg.global_width, cfg.modes
         self.prob = nn.Sequential(
@@ -486,12 +461,10 @@ class EPOModel(_Base):
         out = self.layer(p.double(), u0.double())
         x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0
         pos = x[..., :2]
-        init_pos = rollout_torch(
+        init_pos = self.rollout.states(
             scene["history"][:, -1][:, None].to(z.dtype).expand(B, M, -1, -1),
             u0.reshape(B, M, self.N, self.K, self.nu),
-            self.game.dt,
-            self.dynamics,
-        )[..., :2]
+        )[..., 1:, :2]
         return {
             "pos": pos,
             "states": x,
@@ -518,7 +491,7 @@ class SCModel(_Base):
         B, M = z.shape[0], self.cfg.modes
         U = self.ctrl_dec(z).reshape(B, self.N, M, self.K, self.nu).permute(0, 2, 1, 3, 4)
         x0 = scene["history"][:, -1].to(z.dtype)[:, None].expand(B, M, -1, -1)
-        x = rollout_torch(x0, U, self.game.dt, self.dynamics)
+        x = self.rollout.states(x0, U)[..., 1:, :]  # drop x_0
         pos = x[..., :2]
         return {"pos": pos, "states": x, "controls": U, "logits": self.scene_logits(z, pos)}
 

@@ -66,6 +66,7 @@ from scenarios.dataset import MANIFEST, DatasetError, check_output_dir, fsync_re
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
 from .models import ModelConfig, build_model, count_parameters
+from .scoring import METRICS, evaluate_model
 
 __all__ = [
     "PAPER_LOSS_WEIGHTS",
@@ -93,7 +94,6 @@ PAPER_LOSS_WEIGHTS = {
 }
 #: settings that may change when a run is resumed
 RESUMABLE_CHANGES = ("epochs", "checkpoint_steps", "eval_batch_size")
-METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR")
 
 
 class CheckpointError(EpoError):
@@ -701,8 +701,6 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                 "train_goal": sums.get("goal", 0.0) / ns,
             }
             if val_ds is not None:
-                from .evaluate import evaluate_model
-
                 t1 = time.perf_counter()
                 with _diverged(epoch, step, cfg.lr, ck_path, "the validation output"):
                     vm = evaluate_model(model, val_ds, batch_size=cfg.eval_batch_size)

@@ -25,7 +25,15 @@ from epo_casadi.errors import EpoError  # noqa: E402
 COMMANDS: dict[str, tuple[str, str]] = {
     "solve": ("scenarios.commands.solve:solve", "Solve a game file with LM or IPOPT."),
     "inspect": ("scenarios.commands.inspect:inspect_cmd", "List every energy term of a game file."),
+    "export": (
+        "scenarios.commands.export:export_cmd",
+        "Export a game's functions as CasADi files or C source.",
+    ),
     "demo": ("scenarios.commands.demo:demo", "Run the main job on built-in defaults."),
+    "compare": (
+        "scenarios.commands.compare:compare",
+        "Compare solvers on games and starts: table, figures, scaling.",
+    ),
     "generate": ("scenarios.commands.generate:generate", "Generate a dataset (e.g. rpi)."),
     "data": ("scenarios.commands.data:data", "Verify or show a generated dataset."),
     "simulate": (

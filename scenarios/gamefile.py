@@ -22,6 +22,7 @@ plus optional solver options. The schema, with every field, is documented in
     solver:
       lm: {steps: 200}          # solvers.lm.LMOptions fields
       ipopt: {max_iter: 500}    # solvers.ipopt.IpoptOptions fields
+      ilq: {max_iter: 200}      # solvers.ilq.ILQOptions fields
 
 Every problem in a file raises :class:`epo_casadi.SpecError` whose ``field`` is the
 path of the offending entry (``agents[1].radius``, ``agents[0].features[2].upper``,
@@ -47,11 +48,13 @@ from typing import Any
 
 import numpy as np
 
-from epo_casadi.dynamics import DoubleIntegrator, KinematicBicycle, Unicycle, make_dynamics
+from epo_casadi.dynamics import make_dynamics
 from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.features import OWN_FEATURES, PAIR_FEATURES, Feature, PairFeature
 from epo_casadi.features import Path as PathFeature
 from epo_casadi.game import MAX_HORIZON, AgentSpec, GameSpec, PotentialGame
+from epo_casadi.registry import DYNAMICS, FEATURES, freeze
+from epo_casadi.registry import PAIR_FEATURES as _PAIR_REGISTRY
 
 __all__ = [
     "GameFile",
@@ -75,11 +78,12 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 MAX_VALUES = 1_000_000
 _TOP_KEYS = ("horizon", "dt", "agents", "pair_features", "solver")
 _AGENT_KEYS = ("name", "dynamics", "radius", "x0", "goal", "vref", "path", "features")
-_SOLVERS = ("lm", "ipopt")
+_SOLVERS = ("lm", "ipopt", "ilq")
 #: the rule on weights that the game layer (learning.layer.GameLayer) enforces, said the
 #: same way wherever a weight enters: game files, --set, the feature objects
 WEIGHT_RULE = " (weights must be >= 0)"
-_DYNAMICS = {c.name: c for c in (Unicycle, DoubleIntegrator, KinematicBicycle)}
+#: dynamics by name: built-ins and registered ones (epo_casadi.registry; 'module:Class' too)
+_DYNAMICS = DYNAMICS.table
 
 
 def example_path(name: str) -> Path:
@@ -100,7 +104,7 @@ class GameFile:
     """A loaded game file.
 
     ``spec``: the game; ``params``: its default parameter vector ``p`` (layout in
-    :class:`epo_casadi.ParamLayout`); ``solver_options``: ``{"lm": {...}, "ipopt": {...}}``
+    :class:`epo_casadi.ParamLayout`); ``solver_options``: ``{"lm": {...}, "ipopt": {...}, "ilq": {...}}``
     as validated plain dictionaries (pass one as ``options=`` to the solver);
     ``path``: the file it came from (``None`` for :func:`parse_game` without a source).
     """
@@ -116,7 +120,8 @@ class GameFile:
         return PotentialGame(self.spec)
 
     def options(self, solver: str, **overrides) -> Any:
-        """The options object of ``solver`` (``"lm"`` or ``"ipopt"``): file values, then ``overrides``."""
+        """Options object of ``solver`` (``"lm"``, ``"ipopt"``, ``"ilq"``): file values, then
+        ``overrides``."""
         if solver not in _SOLVERS:
             raise SpecError("solver", f"expected one of {list(_SOLVERS)}, got {short_repr(solver)}")
         values = {**self.solver_options.get(solver, {}), **overrides}
@@ -288,15 +293,13 @@ def _dynamics(d: Any, where: str):
     if "type" not in d:
         raise SpecError(f"{where}.type", f"missing; expected one of {sorted(_DYNAMICS)}")
     kind = d["type"]
-    if not isinstance(kind, str) or kind not in _DYNAMICS:
-        raise SpecError(
-            f"{where}.type",
-            f"unknown dynamics {short_repr(kind)}; expected one of {sorted(_DYNAMICS)}",
-        )
-    cls = _DYNAMICS[kind]
-    options = [f.name for f in fields(cls) if f.name not in ("state_names", "control_names")]
+    cls = DYNAMICS.resolve(kind, f"{where}.type")  # a name or 'module:Class' (imported now)
+    options = DYNAMICS.options(cls)
     _keys(d, where, ("type", *options))
-    values = {k: _number(d[k], f"{where}.{k}", positive=True) for k in options if k in d}
+    if cls.__module__.startswith("epo_casadi."):  # built-in options are positive lengths
+        values = {k: _number(d[k], f"{where}.{k}", positive=True) for k in options if k in d}
+    else:  # a user's model checks its own options (make_dynamics reports them)
+        values = {k: d[k] for k in options if k in d}
     return _wrap(lambda: make_dynamics({"type": kind, **values}), where)
 
 
@@ -310,12 +313,8 @@ def _feature(
     if "type" not in f:
         raise SpecError(f"{where}.type", f"missing; expected one of {sorted(registry)}")
     kind = f["type"]
-    if not isinstance(kind, str) or kind not in registry:
-        raise SpecError(
-            f"{where}.type",
-            f"unknown feature {short_repr(kind)}; expected one of {sorted(registry)}",
-        )
-    cls = registry[kind]
+    # a registered name or 'module:Class' (imported now); a wrong kind of class is refused
+    cls = (FEATURES if registry is OWN_FEATURES else _PAIR_REGISTRY).resolve(kind, f"{where}.type")
     allowed = ("type", *[fl.name for fl in fields(cls)])
     _keys(f, where, allowed)
     opts: dict[str, Any] = {}
@@ -341,8 +340,8 @@ def _feature(
             opts[key] = _integer(v, fw, minimum=1)
         elif key == "pairs":
             opts[key] = _pairs(v, fw, names)
-        else:  # pragma: no cover - a feature field this loader does not know yet
-            opts[key] = v
+        else:  # a field of a user's feature: its class checks it (lists become tuples)
+            opts[key] = freeze(v)
     if kind == "path":
         pts = opts.get("points")
         if pts is not None and path_points is not None and pts != path_points:
@@ -388,7 +387,9 @@ def _solver(s: Any, spec: GameSpec) -> dict:
     if s is None:
         return {}
     if not isinstance(s, Mapping):
-        raise SpecError("solver", f"expected a mapping with 'lm' and/or 'ipopt', got {_short(s)}")
+        raise SpecError(
+            "solver", f"expected a mapping with 'lm', 'ipopt' and/or 'ilq', got {_short(s)}"
+        )
     _keys(s, "solver", _SOLVERS)
     out = {}
     for name, values in s.items():
@@ -427,6 +428,8 @@ def _check_bounds(opts, spec: GameSpec, where: str) -> None:
 def _options_object(solver: str, values: dict, where: str):
     if solver == "lm":
         from solvers.lm import LMOptions as cls
+    elif solver == "ilq":
+        from solvers.ilq import ILQOptions as cls
     else:
         from solvers.ipopt import IpoptOptions as cls
     names = [f.name for f in fields(cls)]
@@ -687,6 +690,8 @@ def dump_game(spec: GameSpec | GameFile, solver_options: Mapping | None = None) 
         spec = spec.spec
     if not isinstance(spec, GameSpec):
         raise SpecError("spec", f"expected a GameSpec, got {type(spec).__name__}")
+    if spec.couplings:
+        raise SpecError("couplings", "game files cannot hold coupled dynamics yet (Python API)")
     agents = []
     for a in spec.agents:
         dyn = a.dynamics.to_dict()
@@ -766,10 +771,15 @@ def apply_settings(
                 raise SpecError(where, f"expected one number for entry {name!r}, got {vals.size}")
             idx = np.array([entries[name]])
         else:
+            import difflib
+
             blocks = [b.name for b in layout.blocks]
+            known = list(dict.fromkeys(blocks + list(entries)))
+            close = difflib.get_close_matches(name, known, n=3, cutoff=0.6)
+            hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
             raise SpecError(
                 where,
-                f"unknown parameter; expected a block {blocks} or one of its entries (e.g. {layout.names[0]!r})",
+                f"unknown parameter; {hint}expected a block {blocks} or one of its entries (e.g. {layout.names[0]!r})",
             )
         neg = weights[idx] & (vals < 0)
         if neg.any():

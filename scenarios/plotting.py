@@ -7,6 +7,7 @@ figure and writes it to ``path`` when one is given.
 
 * :func:`plot_trajectories`: positions of every agent over the horizon, agent circles
   drawn to scale at a few time steps, initial positions, goals and reference paths.
+* :func:`plot_modes`: the modes of a multi-modal solve side by side, each with its share.
 * :func:`plot_energy_history`: energy per iteration of one or more solves (log scale).
 * :func:`plot_sparsity`: the structural nonzeros of ``J = dr/du`` with term and agent
   boundaries.
@@ -23,7 +24,13 @@ import numpy as np
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
-__all__ = ["plot_trajectories", "plot_energy_history", "plot_sparsity", "agent_colors"]
+__all__ = [
+    "plot_trajectories",
+    "plot_modes",
+    "plot_energy_history",
+    "plot_sparsity",
+    "agent_colors",
+]
 
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2")
 
@@ -189,6 +196,53 @@ def plot_trajectories(
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
     if fig is None:  # drawn into the caller's axes
         return _save(ax.figure, path)
+    return _save(fig, path)
+
+
+def plot_modes(
+    game: PotentialGame,
+    modes: Sequence[Any],
+    p: np.ndarray | None = None,
+    path: str | Path | None = None,
+    *,
+    title: str | None = None,
+    max_modes: int = 6,
+):
+    """The modes of a multi-modal solve (:class:`solvers.multimodal.Mode`), one panel each.
+
+    Panels follow the order of ``modes`` (largest share first), at most ``max_modes`` of
+    them; each is a :func:`plot_trajectories` of the mode's medoid, titled with its share,
+    energy and number of member solves. No mode (every solve dropped) gives one panel
+    that says so.
+    """
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    if isinstance(max_modes, bool) or not isinstance(max_modes, int) or max_modes < 1:
+        raise SpecError("max_modes", f"expected an integer >= 1, got {max_modes!r}")
+    shown = list(modes)[:max_modes]
+    n = max(len(shown), 1)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig = _figure((5.2 * cols + 1.2, 4.4 * rows + 0.6))
+    axes = [fig.add_subplot(rows, cols, i + 1) for i in range(n)]
+    if not shown:
+        axes[0].text(0.5, 0.5, "no mode: every solve was dropped", ha="center", va="center")
+        axes[0].set_axis_off()
+    for m, (ax, mode) in enumerate(zip(axes, shown, strict=False)):
+        members = np.size(getattr(mode, "members", ()))
+        plot_trajectories(
+            game,
+            mode.states,
+            p,
+            ax=ax,
+            title=f"mode {m}: share {float(mode.share):.2f}, E = {float(mode.energy):.4g}, "
+            f"{members} solves",
+        )
+    extra = len(modes) - len(shown)
+    fig.suptitle(
+        (title or f"{len(modes)} modes") + (f" ({extra} more not shown)" if extra > 0 else ""),
+        fontsize=10,
+    )
     return _save(fig, path)
 
 

@@ -30,11 +30,13 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
          converge (the collision distance has negative curvature, the value Hessians turn
          indefinite and grow), Gauss-Newton converges in 7-13 iterations (docs/ilq.md).
 
-       **Cross-stage Hessian blocks are dropped** (residual rows that couple two stages,
-       e.g. ``jerk`` or ``turn_acceleration``): the gradient stays exact, the curvature
-       between ``u_k`` and ``u_{k+1}`` is ignored (:attr:`ILQSolver.dropped_cross_stage`
-       counts the dropped nonzeros). Such a cost is not stage-additive, so its feedback
-       game has no exact dynamic-programming form anyway.
+       **Costs that couple consecutive stages** (``jerk``, ``turn_acceleration``): the
+       variables of stage ``k-1`` that such rows involve are carried as extra states
+       ``Y_k = (U_{k-1}, X_{k-1})[aug]`` (:attr:`ILQSolver.aug`), so the cost is
+       stage-additive in ``(X_k, Y_k)`` and the Hessian blocks between stage ``k-1`` and
+       ``k`` are kept exactly (at stage ``k``, against ``Y_k``). Only blocks between stages
+       further apart are dropped (:attr:`ILQSolver.dropped_cross_stage`; none for the
+       built-in features). Without such costs ``Y`` is empty and nothing changes.
     2. *Solve the LQ game's feedback Nash equilibrium* by the coupled Riccati recursion.
        With the homogeneous stage vector ``w = (dU, dX, 1)`` and player ``i``'s stage
        cost ``1/2 w' L_ik w``, value ``1/2 (dX, 1)' Z_ik (dX, 1)`` (``Z_iK = L_iK``) and
@@ -47,12 +49,18 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
        The stacked rows form one ``nu x nu`` linear system for all players' gains ``P``
        (``nu x nx``) and feed-forward terms ``a`` (``nu``).
     3. *Roll out* the nonlinear dynamics with the feedback policy
-       ``U_k = Ubar_k - P_k (X_k - Xbar_k) - eps a_k``. ``eps`` starts at ``step_size``
-       and is multiplied by ``backtrack`` while the rollout is non-finite, leaves the trust
-       region ``max |X - Xbar| <= max_state_step`` or (``line_search="residual"``) does
-       not lower ``max |a|`` at the trial point (costs one backward pass per trial).
+       ``U_k = Ubar_k - P_k (X_k - Xbar_k) - Q_k (Y_k - Ybar_k) - eps a_k``. ``eps`` starts
+       at ``step_size`` and is multiplied by ``backtrack`` while the rollout is non-finite,
+       leaves the trust region ``max |X - Xbar| <= max_state_step`` or
+       (``line_search="residual"``, the default) its merit ``m = RMS(a)`` fails
+       ``m_trial <= (1 - 0.1 eps) max(last `memory` merits)`` (one backward pass per trial;
+       an accepted trial's pass serves the next iteration, so full steps cost nothing
+       extra). The merit is the feedback-Nash residual, valid for general-sum costs; the
+       potential is not a merit here (a feedback equilibrium does not minimize it).
 
-    The iteration stops when ``max |a| <= tol`` (status ``CONVERGED``): the feed-forward
+    The iteration stops when ``max |a| <= tol`` at the requested regularization (status
+    ``CONVERGED``; ``STALLED`` when no step passes the line search up to the regularization
+    cap or the tolerance holds only with raised regularization; ``info['stop']``): the feed-forward
     term is the change of the controls a full step would make at fixed state, and ``a = 0``
     at every stage is the first-order feedback Nash condition: with everybody following
     ``U(X) = U* - P (X - X*)``, no player lowers its cost to first order by deviating at
@@ -69,9 +77,10 @@ Regularization
     eigenvalues: the block becomes positive definite with negative curvature mirrored
     (a concave direction gets curvature of its own size, not a near-singular one). If the
     coupled system is still singular, every player's block at that stage gets ``10x`` more
-    until it solves. When a backward pass still fails, or no step is usable, the global
-    ``mu0`` is raised ``10x`` (at least to ``1e-4``) and the iteration retried; it is lowered
-    ``10x`` after each accepted step. The shifts enter the value recursion too (a
+    until it solves. When a backward pass still fails, or no step passes the line search,
+    the global ``mu`` is raised ``10x`` (at least to ``1e-4``, at most ``1e8``) and the
+    iteration retried; it is lowered ``10x`` after each accepted step (back to ``mu0``
+    below ``1e-4``). The shifts enter the value recursion too (a
     consistent regularized LQ game). ``result.info`` reports them: ``regularization``
     ``(K, N)`` of the last backward pass and ``max_regularization`` over the solve.
 
@@ -80,8 +89,11 @@ Result (:class:`solvers.result.SolveResult`, ``solver='ilq'``)
     ``nan`` with custom costs (and so is ``grad_norm``, the inf-norm of ``dE/du``, which a
     feedback equilibrium does not make zero). ``agent_costs`` are the ``C_i`` that were
     solved. ``info['gains']`` ``(K, nu, nx)`` and ``info['feedforward']`` ``(K, nu)`` are
-    ``P`` and ``a`` at the returned trajectory: the feedback policy
-    ``U_k(X) = U*_k - P_k (X - X*_k) - a_k`` (``a ~ 0`` when converged).
+    ``P`` and ``a`` at the returned trajectory, ``info['gains_prev']`` ``(K, nu, na)`` the
+    gains ``Q`` on the carried variables ``Y`` (``na = 0`` without cross-stage costs;
+    ``info['prev_variables']`` their positions in ``(U_{k-1}, X_{k-1})``): the feedback
+    policy ``U_k = U*_k - P_k (X_k - X*_k) - Q_k (Y_k - Y*_k) - a_k`` (``a ~ 0`` when
+    converged).
     ``info['stationarity']`` is the final ``max |a|``, ``info['residual_history']`` the
     same per iteration, ``info['step_sizes']`` the accepted ``eps`` (``0``: a retry with
     more regularization).
@@ -108,7 +120,7 @@ import numpy as np
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
-from .lm import check_options
+from .lm import MAX_STEPS, check_options
 from .result import SolveResult, Status
 
 __all__ = ["ILQOptions", "ILQSolver", "get_solver", "solve_ilq", "to_stages", "from_stages"]
@@ -144,16 +156,17 @@ class ILQOptions:
     tol: float = 1e-5  #: converged when max |a| (feed-forward, control units) <= tol
     hessian: str = "auto"  #: "gauss_newton", "exact"; "auto": GN for game costs, else exact
     step_size: float = 1.0  #: first trial eps on the feed-forward term in every iteration
-    line_search: str = "none"  #: "none": take step_size; "residual": max|a| at the trial must drop
+    line_search: str = "residual"  #: "residual": merit max|a| must drop (non-monotone); "none"
+    memory: int = 5  #: residual line search: compare with the largest of the last `memory` merits
     backtrack: float = 0.5  #: factor on eps after a rejected trial step
-    max_backtracks: int = 10  #: rejected trials before the smallest step is taken anyway
+    max_backtracks: int = 10  #: rejected trials before regularization is raised instead
     max_state_step: float = math.inf  #: trust region: largest |X_new - X| (elementwise) accepted
     regularization: float = 0.0  #: mu0 >= 0 always added to every player's own block H_ii
     min_curvature: float = 1e-8  #: smallest allowed pivot of H_ii before a shift is added
     compiled: bool = False  #: Riccati recursion as generated C (needs a C compiler; cached on disk)
 
     def __post_init__(self):
-        _num("max_iter", self.max_iter, 0, integer=True)
+        _num("max_iter", self.max_iter, 0, MAX_STEPS, integer=True)
         _num("tol", self.tol, 0)
         if self.hessian not in HESSIANS:
             raise SpecError("ilq.hessian", f"expected one of {HESSIANS}, got {self.hessian!r}")
@@ -166,6 +179,7 @@ class ILQOptions:
         if not self.backtrack < 1:
             raise SpecError("ilq.backtrack", f"expected 0 < backtrack < 1, got {self.backtrack!r}")
         _num("max_backtracks", self.max_backtracks, 0, integer=True)
+        _num("memory", self.memory, 1, integer=True)
         _num("max_state_step", self.max_state_step, 0, strict_lo=True)
         _num("regularization", self.regularization, 0)
         if not math.isfinite(self.regularization):
@@ -327,15 +341,8 @@ class ILQSolver:
 
     # ---- symbolic builders ------------------------------------------------------------------
     def _joint_step(self, X, U):
-        g = self.game
-        parts = []
-        for i, a in enumerate(g.agents):
-            parts.append(
-                a.dynamics.step(
-                    X[self.xo[i] : self.xo[i + 1]], U[self.uo[i] : self.uo[i + 1]], g.dt
-                )
-            )
-        return ca.vertcat(*parts)
+        # the game's own stage map: each agent's dynamics, or its coupling's joint model
+        return self.game.stage_step(X, U)
 
     def _build_quadratize(self):
         g, K, N, nx, nu, n = self.game, self.K, self.N, self.nx, self.nu, self.n
@@ -364,8 +371,7 @@ class ILQSolver:
             if self.hessian == "gauss_newton"
             else None
         )
-        outs, src, tgt = [], [], []
-        off = 0
+        grads, hessians = [], []
         for i in range(N):
             if self.hessian == "gauss_newton":
                 rows_i = [
@@ -379,26 +385,47 @@ class ILQSolver:
                 H, grad = ca.mtimes(J.T, J), ca.mtimes(J.T, ri)
             else:
                 H, grad = ca.hessian(C[i], z)
+            rows, cols = (np.asarray(v, dtype=int) for v in H.sparsity().get_triplet())
+            grads.append(grad)
+            hessians.append((H, rows, cols))
+        # Hessian entries between consecutive stages (jerk, turn_acceleration): the earlier
+        # stage's variables they involve are carried into the next stage as extra states Y
+        lag = [stage_of[r] - stage_of[c] for _, r, c in hessians]
+        prev = np.unique(
+            np.concatenate(
+                [pos_in[c[d == 1]] for (_, r, c), d in zip(hessians, lag, strict=True)] + [[]]
+            )
+        ).astype(int)
+        self.aug = prev  # positions in (U_k, X_k) of the carried variables Y_{k+1}
+        self.na = int(prev.size)
+        self.nxs = nx + self.na  # Riccati state (X_k, Y_k)
+        self.n = n = nu + self.nxs + 1
+        ypos = np.full(nu + nx, -1)
+        ypos[prev] = nu + nx + np.arange(self.na)
+        n_stage = K * N * n * n
+        outs, src, tgt = [], [], []
+        off = 0
+        self.dropped_cross_stage = 0
+        for i, (grad, (H, rows, cols)) in enumerate(zip(grads, hessians, strict=True)):
             # gradient -> last row and last column of player i's stage matrices
             outs.append(ca.densify(grad))
             for a_, b_ in ((pos_in, np.full(nz, n - 1)), (np.full(nz, n - 1), pos_in)):
                 src.append(off + np.arange(nz))
                 tgt.append(self._lam_index(stage_of, i, a_, b_, n_stage))
             off += nz
-            # Hessian nonzeros inside a stage block; cross-stage blocks are dropped
-            rows, cols = (np.asarray(v, dtype=int) for v in H.sparsity().get_triplet())
-            sel = np.nonzero(stage_of[rows] == stage_of[cols])[0]
+            # Hessian nonzeros inside a stage block, and between a stage and the one before
+            # it (placed at stage k against Y_k); blocks further apart are dropped
+            d = stage_of[rows] - stage_of[cols]
+            sel = np.nonzero(np.abs(d) <= 1)[0]
             outs.append(H.nz[sel.tolist()] if sel.size else ca.SX(0, 1))
+            rs, cs, ds = rows[sel], cols[sel], d[sel]
+            ka = np.maximum(stage_of[rs], stage_of[cs])
+            pa = np.where(ds == -1, ypos[pos_in[rs]], pos_in[rs])
+            pb = np.where(ds == 1, ypos[pos_in[cs]], pos_in[cs])
             src.append(off + np.arange(sel.size))
-            tgt.append(
-                self._lam_index(
-                    stage_of[rows[sel]], i, pos_in[rows[sel]], pos_in[cols[sel]], n_stage
-                )
-            )
+            tgt.append(self._lam_index(ka, i, pa, pb, n_stage))
             off += sel.size
-            self.dropped_cross_stage = int(rows.size - sel.size) + getattr(
-                self, "dropped_cross_stage", 0
-            )
+            self.dropped_cross_stage += int(rows.size - sel.size)
         # dynamics Jacobians per stage, packed into Phi[k] = [[B_k, A_k, 0], [0, 0, 1]]
         xk, uk = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
         nxt = self._joint_step(xk, uk)
@@ -414,7 +441,9 @@ class ILQSolver:
         stage0 = np.concatenate([rb * n + cB, ra * n + nu + cA])
         self._phi_pattern = stage0  # flat entries of one Phi[k] that change with the trajectory
         self._phi_tgt = (
-            (np.arange(K)[:, None] * ((nx + 1) * n) + stage0[None]).reshape(-1).astype(np.intp)
+            (np.arange(K)[:, None] * ((self.nxs + 1) * n) + stage0[None])
+            .reshape(-1)
+            .astype(np.intp)
         )
         if self.custom_costs:
             E = ca.SX(np.nan)
@@ -432,8 +461,9 @@ class ILQSolver:
         self._lam_src = np.concatenate(src).astype(np.intp)
         self._lam_tgt = np.concatenate(tgt).astype(np.intp)
         self.Lam = np.zeros(n_stage + N * n * n)  # stages 0..K-1, then the terminal stage
-        self.Phi = np.zeros((K, nx + 1, n))
-        self.Phi[:, nx, n - 1] = 1.0
+        self.Phi = np.zeros((K, self.nxs + 1, n))
+        self.Phi[:, self.nxs, n - 1] = 1.0
+        self.Phi[:, nx + np.arange(self.na), prev] = 1.0  # Y_{k+1} = (U_k, X_k)[aug]
 
     def _lam_index(self, k, i, a, b, n_stage):
         """Flat index into ``self.Lam`` of entry ``(a, b)`` of player ``i`` at stage ``k``.
@@ -446,17 +476,22 @@ class ILQSolver:
         return np.where(k < self.K, ((k * N + i) * n + a) * n + b, n_stage + (i * n + a) * n + b)
 
     def _build_rollout(self):
-        K, nx, nu = self.K, self.nx, self.nu
+        K, nx, nu, nxs = self.K, self.nx, self.nu, self.nxs
         x0 = ca.SX.sym("x0", nx)
         Xr = ca.SX.sym("Xr", nx, K + 1)
         Ur = ca.SX.sym("Ur", nu, K)
-        PA = ca.SX.sym("PA", (nx + 1) * nu, K)
+        PA = ca.SX.sym("PA", (nxs + 1) * nu, K)
         eps = ca.SX.sym("eps")
         x = x0
         X, U = [x0], []
+        dy = ca.SX.zeros(self.na)  # deviation of the carried variables Y_k (none at k = 0)
+        aug = self.aug.tolist()
         for k in range(K):
-            pa = ca.reshape(PA[:, k], nx + 1, nu).T  # row-major (nu, nx+1) block of stage k
-            u = Ur[:, k] - ca.mtimes(pa[:, :nx], x - Xr[:, k]) - eps * pa[:, nx]
+            pa = ca.reshape(PA[:, k], nxs + 1, nu).T  # row-major (nu, nxs+1) block of stage k
+            dx = ca.vertcat(x - Xr[:, k], dy)
+            u = Ur[:, k] - ca.mtimes(pa[:, :nxs], dx) - eps * pa[:, nxs]
+            if self.na:
+                dy = ca.vertcat(u - Ur[:, k], x - Xr[:, k])[aug]
             x = self._joint_step(x, u)
             X.append(x)
             U.append(u)
@@ -475,7 +510,7 @@ class ILQSolver:
         ).astype(np.intp)
 
     def _build_riccati_indices(self):
-        N, nu, nx, n = self.N, self.nu, self.nx, self.n
+        N, nu, nx, n = self.N, self.nu, self.nxs, self.n
         owner = np.concatenate([np.full(self.game.nu[i], i) for i in range(N)]).astype(np.intp)
         self._row_p, self._row_r = owner, np.arange(nu, dtype=np.intp)
         self._own_diag = (owner, np.arange(nu, dtype=np.intp), np.arange(nu, dtype=np.intp))
@@ -542,7 +577,7 @@ class ILQSolver:
         """
         if self._compiled is not None:
             return self._compiled.backward(mu0, delta)
-        K, N, nu, nx, n = self.K, self.N, self.nu, self.nx, self.n
+        K, N, nu, nx, n = self.K, self.N, self.nu, self.nxs, self.n
         Lam = self.Lam[: K * N * n * n].reshape(K, N, n, n)
         LamK = self.Lam[K * N * n * n :].reshape(N, n, n)
         t = self._term
@@ -616,7 +651,7 @@ class ILQSolver:
         p = P[0]
         _, Ubar = to_stages(g, None, U0[0])
         Xbar, Ubar = self.rollout(
-            p, np.zeros((self.K + 1, self.nx)), Ubar, np.zeros((self.K, self.nu, self.nx + 1)), 0.0
+            p, np.zeros((self.K + 1, self.nx)), Ubar, np.zeros((self.K, self.nu, self.nxs + 1)), 0.0
         )
         mu0, delta = float(opts.regularization), float(opts.min_curvature)
         mu_run = mu0  # raised 10x when a backward or forward pass fails, lowered after success
@@ -626,13 +661,17 @@ class ILQSolver:
             PA, mu, ok = backward(mu_run, delta)
             res = float(np.max(np.abs(PA[:, :, -1]))) if self.K else 0.0
             finite = ok and math.isfinite(res) and bool(np.isfinite(C).all())
-            return C, E, PA, mu, res if finite else math.inf
+            # RMS of a; math.fsum is exactly rounded, so the merit (and every accept/reject
+            # decision) does not depend on summation order, SIMD alignment or BLAS threads
+            a2 = (PA[:, :, -1] ** 2).ravel().tolist()
+            merit = math.sqrt(math.fsum(a2) / len(a2)) if a2 else 0.0
+            return C, E, PA, mu, res if finite else math.inf, merit if finite else math.inf
 
         def bump():
             nonlocal mu_run
             if mu_run >= _MAX_MU:
                 return False
-            mu_run = max(10.0 * mu_run, 1e-4)
+            mu_run = max(10.0 * mu_run, _MIN_MU)
             return True
 
         def relinearize(X, U):
@@ -641,19 +680,39 @@ class ILQSolver:
                 lin = linearize(X, U)
             return lin
 
-        C, E, PA, mu, res = relinearize(Xbar, Ubar)
+        C, E, PA, mu, res, merit = relinearize(Xbar, Ubar)
         status = Status.MAX_ITER if math.isfinite(res) else Status.NONFINITE
+        stop = "max_iter" if math.isfinite(res) else "nonfinite"
         hist_E, hist_res, steps = [E], [res], []
+        merits = [merit]  # merits (RMS of a) at the current regularization, newest last
         max_mu = _max(mu)
-        it = 0
+        it = resets = 0
         while status is Status.MAX_ITER:
             if res <= opts.tol:
-                status = Status.CONVERGED
-                break
+                if mu_run <= mu0:  # the tolerance holds at the requested regularization
+                    status, stop = Status.CONVERGED, "tol"
+                    break
+                # judged with the regularization the user asked for, never a raised one
+                mu_run = mu0
+                lin = linearize(Xbar, Ubar)
+                resets += 1
+                if not math.isfinite(lin[4]):
+                    status, stop = Status.STALLED, "singular"
+                    break
+                if lin[4] > opts.tol and resets > _MAX_RESETS:
+                    # the tolerance only holds with raised regularization: not a feedback
+                    # Nash point of the game that was asked for
+                    C, E, PA, mu, res, merit = lin
+                    status, stop = Status.STALLED, "regularized_only"
+                    break
+                C, E, PA, mu, res, merit = lin
+                merits = [merit]
+                continue
             if it >= opts.max_iter:
                 break
+            ref = max(merits[-opts.memory :])
             eps, accepted = float(opts.step_size), None
-            for trial in range(opts.max_backtracks + 1):
+            for _trial in range(opts.max_backtracks + 1):
                 with np.errstate(all="ignore"):
                     Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps)
                     good = bool(np.isfinite(Xn).all() and np.isfinite(Un).all())
@@ -662,7 +721,7 @@ class ILQSolver:
                 lin = None
                 if good and opts.line_search == "residual":
                     lin = linearize(Xn, Un)
-                    good = lin[4] < res or (trial == opts.max_backtracks and math.isfinite(lin[4]))
+                    good = lin[5] <= (1.0 - _ARMIJO * eps) * ref
                 if good:
                     accepted = (Xn, Un, lin, eps)
                     break
@@ -670,21 +729,31 @@ class ILQSolver:
             it += 1
             if accepted is None:  # no usable step: more regularization, same trajectory
                 if not bump():
-                    status = Status.NONFINITE
+                    status, stop = Status.STALLED, "line_search"
+                    if mu_run > mu0:  # report max |a| at the requested regularization
+                        mu_run = mu0
+                        lin = linearize(Xbar, Ubar)
+                        if math.isfinite(lin[4]):
+                            C, E, PA, mu, res, merit = lin
                     break
                 lin, eps = relinearize(Xbar, Ubar), 0.0
+                merits = []
             else:
                 Xbar, Ubar, lin, eps = accepted
-                mu_run = max(mu0, mu_run / 10.0)
+                if mu_run > mu0:  # success: lower the regularization again
+                    mu_run = mu_run / 10.0 if mu_run / 10.0 >= _MIN_MU else mu0
+                    mu_run = max(mu_run, mu0)
+                    merits = []
                 if lin is None or not math.isfinite(lin[4]):
                     lin = relinearize(Xbar, Ubar)
-            C, E, PA, mu, res = lin
+            C, E, PA, mu, res, merit = lin
+            merits.append(merit)
             steps.append(eps)
             hist_E.append(E)
             hist_res.append(res)
             max_mu = max(max_mu, _max(mu))
             if not math.isfinite(res):
-                status = Status.NONFINITE
+                status, stop = Status.NONFINITE, "nonfinite"
         x, u = from_stages(g, Xbar, Ubar)
         grad_norm = math.nan
         if not self.custom_costs:
@@ -704,8 +773,11 @@ class ILQSolver:
             wall_time=time.perf_counter() - t0,
             info={
                 "gains": PA[:, :, : self.nx].copy(),
-                "feedforward": PA[:, :, self.nx].copy(),
+                "gains_prev": PA[:, :, self.nx : self.nxs].copy(),
+                "prev_variables": self.aug.copy(),
+                "feedforward": PA[:, :, self.nxs].copy(),
                 "stationarity": res,
+                "stop": stop,
                 "residual_history": np.asarray(hist_res, float),
                 "step_sizes": np.asarray(steps, float),
                 "regularization": mu,
@@ -726,6 +798,9 @@ class ILQSolver:
 
 
 _MAX_MU = 1e8  # largest global regularization the adaptive retries reach
+_MIN_MU = 1e-4  # first raised regularization; below it, a lowered one returns to mu0
+_MAX_RESETS = 2  # returns to the requested regularization before a solve is called stalled
+_ARMIJO = 0.1  # sufficient decrease of the merit per unit step: (1 - c eps) x reference
 
 
 def _max(a):
@@ -765,7 +840,7 @@ class _CompiledRiccati:
         from .codegen import compile_functions
 
         self.s = s
-        K, N, nu, nx, n = s.K, s.N, s.nu, s.nx, s.n
+        K, N, nu, nx, n = s.K, s.N, s.nu, s.nxs, s.n
         # union pattern of the stage matrices L_ik (k < K), per player
         lt = s._lam_tgt[s._lam_tgt < K * N * n * n]
         rem = lt % (N * n * n)
@@ -790,7 +865,9 @@ class _CompiledRiccati:
         mu0 = ca.SX.sym("mu0")
         delta = ca.SX.sym("delta")
         Ph = ca.SX(ca.Sparsity.triplet(nx + 1, n, pr.tolist(), pc.tolist()), phi)
-        Ph = Ph + ca.SX(ca.Sparsity.triplet(nx + 1, n, [nx], [n - 1]), ca.SX(1.0))
+        ones_r = [s.nx + m for m in range(s.na)] + [nx]
+        ones_c = [int(c) for c in s.aug] + [n - 1]
+        Ph = Ph + ca.SX(ca.Sparsity.triplet(nx + 1, n, ones_r, ones_c), ca.SX.ones(len(ones_r)))
         Ts, off, mus = [], 0, []
         for i, (r, c) in enumerate(pats):
             L = ca.SX(ca.Sparsity.triplet(n, n, r.tolist(), c.tolist()), lam[off : off + r.size])
@@ -829,7 +906,7 @@ class _CompiledRiccati:
 
     def backward(self, mu0, delta):
         s = self.s
-        K, N, nu, nx, n = s.K, s.N, s.nu, s.nx, s.n
+        K, N, nu, nx, n = s.K, s.N, s.nu, s.nxs, s.n
         Lam = s.Lam[: K * N * n * n].reshape(K, N * n * n)
         LamK = s.Lam[K * N * n * n :].reshape(N, n, n)
         t = s._term
@@ -926,7 +1003,7 @@ def _stack(rs: list[SolveResult], wall: float) -> SolveResult:
     status = np.empty(len(rs), dtype=object)
     status[:] = [r.status for r in rs]
     info: dict = {}
-    for key in ("gains", "feedforward", "regularization"):
+    for key in ("gains", "gains_prev", "feedforward", "regularization"):
         info[key] = np.stack([r.info[key] for r in rs])
     for key in ("stationarity", "max_regularization"):
         info[key] = np.array([r.info[key] for r in rs])

@@ -10,7 +10,7 @@ size ``alpha``. :meth:`LMOptions.paper` gives the paper's setting (``S = 2`` ste
 ``alpha = 0.3``, ``lambda = 10``, no adaptation). With ``adaptive_damping`` a step that
 does not lower the energy is rejected and ``lambda`` grows; an accepted one shrinks it.
 
-The linear algebra is a *Gauss-Newton backend*. :class:`DenseGN` (here) evaluates
+The linear algebra is a *Gauss-Newton backend*. :class:`DenseGN` (:mod:`solvers.gn`) evaluates
 ``r`` and ``J`` for the whole batch with mapped CasADi functions (no Python loop per
 problem) and solves the damped normal equations numerically (batched Cholesky), never
 with a symbolic inverse. The default, :class:`solvers.structured.StructuredGN`, computes
@@ -34,6 +34,7 @@ from epo_casadi.errors import SpecError, check_number, short_repr
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
+from .gn import DenseGN, Linearization  # the shared backend piece, one level down
 from .result import SolveResult, Status, demote_nonfinite
 
 __all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options", "MAX_STEPS"]
@@ -68,7 +69,7 @@ def _pos(name, v, allow_zero=False):
 class LMOptions:
     """Levenberg-Marquardt options (defaults: a converging standalone solve)."""
 
-    steps: int = 100  #: maximum number of steps S
+    steps: int = 500  #: maximum number of steps S (a converging solve stops long before)
     step_size: float = 1.0  #: alpha in u <- u + alpha du, 0 < alpha <= 1
     damping: float = 1e-2  #: initial damping lambda
     adaptive_damping: bool = True  #: reject energy-increasing steps and adapt lambda
@@ -81,12 +82,13 @@ class LMOptions:
     ftol: float = 1e-12  #: stop when an accepted step lowers E by <= ftol * (1 + E) (0 disables)
     ctol: float = 1e-4  #: an ftol/max_damping stop is converged iff max_j cos(r, J e_j) <= ctol
     backend: str = (
-        "structured"  #: Gauss-Newton backend: "structured" (stage-wise Riccati, exact) or "dense"
+        "structured"  #: GN backend: "structured" (stage Riccati), "fused" (fast_gn.py) or "dense"
     )
     compiled: bool = (
-        False  #: structured backend: evaluate stage functions as generated C (needs gcc)
+        False  #: structured/fused backends: evaluate their functions as generated C (needs gcc)
     )
     threads: int | None = None  #: threads for mapped evaluation (None: EPO_THREADS or all cores)
+    polish: int = 0  #: Newton steps (exact Hessian) after an ftol/damping stop with |grad| > gtol
 
     def __post_init__(self):
         if (
@@ -126,9 +128,18 @@ class LMOptions:
                 "lm.threads", f"expected an integer >= 1 or null, got {short_repr(self.threads)}"
             )
         _pos("ftol", self.ftol, allow_zero=True)
-        if self.backend not in ("dense", "structured"):
+        if (
+            isinstance(self.polish, bool)
+            or not isinstance(self.polish, int)
+            or not 0 <= self.polish <= 1000
+        ):
             raise SpecError(
-                "lm.backend", f"expected 'dense' or 'structured', got {short_repr(self.backend)}"
+                "lm.polish", f"expected an integer >= 0 and <= 1000, got {short_repr(self.polish)}"
+            )
+        if self.backend not in ("dense", "structured", "fused"):
+            raise SpecError(
+                "lm.backend",
+                f"expected 'dense', 'structured' or 'fused', got {short_repr(self.backend)}",
             )
 
     @classmethod
@@ -141,72 +152,25 @@ class LMOptions:
         return cls(**base)
 
 
-@dataclass
-class Linearization:
-    """What a backend knows at the current iterate of every problem."""
-
-    r: np.ndarray  # (B, n_r)
-    J: np.ndarray  # (B, n_r, n_u) dense Jacobian of r
-    energy: np.ndarray  # (B,)
-    gradient: np.ndarray  # (B, n_u) = J'r
-    JtJ: np.ndarray  # (B, n_u, n_u)
-
-
-class DenseGN:
-    """Dense Gauss-Newton backend: ``r``, ``J`` by mapped CasADi, batched Cholesky solves."""
-
-    def __init__(
-        self, game: PotentialGame, threads: int | None = None, functions: dict | None = None
-    ):
-        self.game = game
-        fn = functions or {}
-        self.lm_terms = BatchFunction(fn.get("lm_terms") or game.function("lm_terms"), threads)
-        self.energy_fn = BatchFunction(fn.get("energy") or game.function("energy"), threads)
-
-    def linearize(self, U: np.ndarray, P: np.ndarray) -> Linearization:
-        r, Jnz = self.lm_terms(U, P)
-        J = Jnz.reshape(U.shape[0], self.game.n_u, self.game.n_r).transpose(0, 2, 1)
-        g = np.einsum("bij,bi->bj", J, r)
-        JtJ = np.matmul(J.transpose(0, 2, 1), J)
-        return Linearization(r, J, 0.5 * np.einsum("bi,bi->b", r, r), g, JtJ)
-
-    def energy(self, U: np.ndarray, P: np.ndarray) -> np.ndarray:
-        return self.energy_fn(U, P)[0][:, 0]
-
-    @staticmethod
-    def solve(
-        lin: Linearization, damping: np.ndarray, rhs: np.ndarray, ellipsoidal: bool = False
-    ) -> np.ndarray:
-        """Solve ``(J'J + damping D) x = rhs`` for every problem; ``rhs`` is ``(B, n_u)``."""
-        A = lin.JtJ.copy()
-        n = A.shape[-1]
-        diag = np.einsum("bii->bi", A)
-        d = np.where(diag > 1e-12, diag, 1e-12) if ellipsoidal else np.ones_like(diag)
-        idx = np.arange(n)
-        A[:, idx, idx] += damping[:, None] * d
-        try:
-            L = np.linalg.cholesky(A)
-            y = np.linalg.solve(L, rhs[..., None])
-            return np.linalg.solve(L.transpose(0, 2, 1), y)[..., 0]
-        except np.linalg.LinAlgError:  # one bad problem must not fail the batch
-            out = np.full_like(rhs, np.nan)
-            for b in range(A.shape[0]):
-                try:
-                    out[b] = np.linalg.solve(A[b], rhs[b])
-                except np.linalg.LinAlgError:
-                    pass  # stays NaN: solve_lm marks the problem NONFINITE
-            return out
-
-
 def make_backend(game: PotentialGame, options: LMOptions):
-    """The Gauss-Newton backend ``options`` name, built once per game (``game.cached``)."""
+    """The Gauss-Newton backend ``options`` name, built once per game (``game.cached``).
+
+    A game with coupled dynamics (``game.coupled``) always gets :class:`DenseGN`: the
+    stage-wise backends assume each agent steps with its own dynamics.
+    """
     key = ("lm_backend", options.backend, options.threads, options.compiled)
 
     def build():
+        if getattr(game, "coupled", False):
+            return DenseGN(game, threads=options.threads)
         if options.backend == "structured":
             from .structured import StructuredGN
 
             return StructuredGN(game, threads=options.threads, compiled=options.compiled)
+        if options.backend == "fused":
+            from .fast_gn import FusedGN
+
+            return FusedGN(game, threads=options.threads, compiled=options.compiled)
         return DenseGN(game, threads=options.threads)
 
     return game.cached(key, build)
@@ -310,10 +274,23 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         hist.append(E.copy())
         lam_hist.append(lam.copy())
 
+    # Polish: a stop without progress above gtol gets a few exact-Hessian Newton steps
+    if opts.polish and opts.gtol > 0 and game.n_u:
+        cand = (
+            np.isin(stop, ("ftol", "max_damping"))
+            & (np.max(np.abs(lin.gradient), axis=1) > opts.gtol)
+            & (status != Status.NONFINITE)
+        )
+        if cand.any():
+            U, done = _polish(game, U, P, cand, opts)
+            new_lin = be.linearize(U, P)
+            E = np.where(cand, new_lin.energy, E)
+            lin = _merge(lin, new_lin, cand)
+            status[done], stop[done] = Status.CONVERGED, "polish"
     # A stop without progress (ftol, damping cap) is converged only where the first-order
     # test holds; otherwise the iterate is a stall, not a stationary point.
     cos = np.zeros(B)
-    candidates = status == Status.STALLED
+    candidates = (status == Status.STALLED) & (stop != "polish")
     if candidates.any():
         cos = residual_cosine(lin, be)
         status[candidates & (cos <= opts.ctol)] = Status.CONVERGED
@@ -342,6 +319,55 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
         },
     )
     return res[0] if single else res
+
+
+def _polish(game: PotentialGame, U, P, cand, opts) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``opts.polish`` Newton steps ``H du = -g`` (exact Hessian of ``E``) for the
+    problems in ``cand``, batched over them. A step is taken only where ``H`` is positive
+    definite (a minimum's neighbourhood), and kept only if it lowers ``|g|_inf`` without
+    raising ``E`` beyond round-off (halved up to 5 times). Returns the controls and the
+    problems whose gradient reached ``gtol`` (``(B,)``)."""
+    idx = np.nonzero(cand)[0]
+    hf = batch_function(game, "hessian", opts.threads)
+    gf = batch_function(game, "gradient", opts.threads)
+    ef = batch_function(game, "energy", opts.threads)
+    Ui, Pi = U[idx].copy(), P[idx]
+    g = gf(Ui, Pi)[0]
+    e = ef(Ui, Pi)[0][:, 0]
+    gn = np.max(np.abs(g), axis=1)
+    live = gn > opts.gtol
+    for _ in range(opts.polish):
+        if not live.any():
+            break
+        H = hf.dense(0, hf(Ui, Pi)[0])
+        du = np.zeros_like(Ui)
+        for b in np.nonzero(live)[0]:  # only the few flagged problems, a few steps each
+            try:
+                L = np.linalg.cholesky(H[b])
+            except np.linalg.LinAlgError:
+                live[b] = False  # not a minimum's neighbourhood: leave it as it is
+                continue
+            du[b] = -np.linalg.solve(L.T, np.linalg.solve(L, g[b]))
+        alpha = np.ones(len(idx))
+        moved = np.zeros(len(idx), bool)
+        for _ in range(6):
+            todo = live & ~moved
+            if not todo.any():
+                break
+            Ut = Ui + alpha[:, None] * du
+            gt = gf(Ut, Pi)[0]
+            et = ef(Ut, Pi)[0][:, 0]
+            gtn = np.max(np.abs(gt), axis=1)
+            ok = todo & np.isfinite(et) & (gtn < gn) & (et <= e + 1e-12 * (1 + np.abs(e)))
+            Ui[ok], g[ok], e[ok], gn[ok] = Ut[ok], gt[ok], et[ok], gtn[ok]
+            moved |= ok
+            alpha = np.where(todo & ~ok, 0.5 * alpha, alpha)
+        live &= moved & (gn > opts.gtol)
+    U = U.copy()
+    U[idx] = Ui
+    done = np.zeros(U.shape[0], bool)
+    done[idx] = gn <= opts.gtol
+    return U, done
 
 
 def residual_cosine(lin, backend=None) -> np.ndarray:

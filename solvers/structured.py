@@ -53,7 +53,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
-from .lm import DenseGN, Linearization
+from .gn import DenseGN, Linearization
 
 __all__ = ["StageLayout", "StructuredGN", "StructuredLinearization", "stage_layout"]
 
@@ -258,6 +258,8 @@ class StructuredGN:
     ):
         if not isinstance(game, PotentialGame):
             raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+        if getattr(game, "coupled", False):  # per-agent stage dynamics only
+            raise SpecError("game", "coupled dynamics: use the dense backend (LM picks it)")
         self.game = game
         self.threads = threads
         self.compiled = bool(compiled)

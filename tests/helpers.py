@@ -11,6 +11,7 @@ from epo_casadi import (
     Collision,
     GameSpec,
     Goal,
+    Jerk,
     PotentialGame,
     TurnRate,
     TurnRateBound,
@@ -53,3 +54,94 @@ def crossing_spec(
 
 def crossing_game(**kw) -> PotentialGame:
     return PotentialGame(crossing_spec(**kw))
+
+
+def _family_features(dynamics: str, jerk: bool) -> list:
+    feats = [
+        Goal(weight=3.0),
+        Velocity(weight=0.5),
+        Acceleration(),
+        TurnRate(),
+        VelocityBound(lower=0.0, upper=2.5, weight=5.0),
+        AccelerationBound(lower=-3.0, upper=3.0, weight=5.0),
+    ]
+    if jerk:
+        feats.append(Jerk(weight=0.05))
+    return feats
+
+
+def family_spec(
+    layout: str,
+    N: int,
+    dynamics: str = "unicycle",
+    collision_weight: float = 10.0,
+    seed: int = 0,
+    K: int = 25,
+    jerk: bool = False,
+) -> GameSpec:
+    """One seeded game of a family beyond the shipped examples (tests/test_defaults.py).
+
+    ``layout``: ``"crossing"`` (``N`` agents on a circle of radius 2 m, each to the opposite
+    side), ``"intersection"`` (agents from the four arms of a crossroads, in turn W, S, E, N,
+    2 m out, a second round 1.2 m further back, going straight across) or ``"merge"`` (pairs
+    2 m apart along ``x``: one in the lane ``y = 0``, one on a ramp 1 m to the right heading
+    into it). Every agent starts at 1.5 m/s. Starts and goals
+    get a seeded jitter of up to 0.2 m (0.3 m sideways on goals), so no layout is exactly
+    symmetric. ``dynamics``: ``"unicycle"`` or ``"bicycle"`` (wheelbase 0.5 m, radius 0.3 m).
+    Every straight-line start brings some pair inside the collision distance.
+    """
+    rng = np.random.default_rng(seed)
+    radius = 0.3 if dynamics == "bicycle" else 0.25
+    dyn = {"type": "bicycle", "wheelbase": 0.5} if dynamics == "bicycle" else "unicycle"
+    v0 = 1.5
+    starts, goals = [], []
+    for i in range(N):
+        j = rng.uniform(-0.2, 0.2, size=2)
+        side = rng.uniform(-0.3, 0.3)
+        if layout == "crossing":
+            ang = 2 * np.pi * i / N
+            c, s = np.cos(ang), np.sin(ang)
+            starts.append([2 * c + j[0], 2 * s + j[1], v0, ang + np.pi])
+            goals.append([-2 * c - side * s, -2 * s + side * c])
+        elif layout == "intersection":
+            ang = np.pi * (i % 4) / 2
+            back = 2.0 + 1.2 * (i // 4)
+            c, s = np.cos(ang), np.sin(ang)
+            lane = 0.15  # right of the arm's centre line
+            starts.append([-back * c + lane * s + j[0], -back * s - lane * c + j[1], v0, ang])
+            goals.append([2.5 * c + (lane + side) * s, 2.5 * s - (lane + side) * c])
+        elif layout == "merge":
+            x = -3.0 + 2.0 * (i // 2) + j[0]
+            if i % 2:  # on the ramp, heading into the main lane y = 0
+                starts.append([x, -1.0 + j[1], v0, float(np.arctan2(1.0, 3.0))])
+            else:
+                starts.append([x, 0.0, v0, 0.0])
+            goals.append([x + 4.5 + side, 0.0])
+        else:
+            raise ValueError(f"unknown layout {layout!r}")
+    agents = [
+        AgentSpec(
+            f"a{i}",
+            dyn,
+            _family_features(dynamics, jerk),
+            radius=radius,
+            x0=starts[i],
+            goal=goals[i],
+        )
+        for i in range(N)
+    ]
+    return GameSpec(agents, [Collision(weight=collision_weight)], horizon=K, dt=0.1)
+
+
+#: The family swept by tests/test_defaults.py: (layout, N, dynamics, collision weight, seed,
+#: jerk). N = 2..6, unicycles and bicycles, collision weights 1..100, three layouts.
+FAMILY = (
+    ("crossing", 2, "unicycle", 1.0, 0, False),
+    ("crossing", 3, "bicycle", 10.0, 1, False),
+    ("crossing", 6, "unicycle", 100.0, 2, False),
+    ("intersection", 4, "unicycle", 30.0, 3, False),
+    ("intersection", 5, "bicycle", 3.0, 4, False),
+    ("merge", 2, "bicycle", 20.0, 5, True),
+    ("merge", 4, "unicycle", 50.0, 6, True),
+    ("crossing", 2, "bicycle", 100.0, 7, False),
+)

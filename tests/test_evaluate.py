@@ -154,16 +154,64 @@ def test_evaluate_runs_of_every_kind(runs, tmp_path):
         assert (
             r.metrics["minSADE"] >= r.metrics["minADE"] - 1e-6
         )  # a joint minimum is never below the marginal one
-    with SceneDataset(data, "test") as ds:  # the report holds evaluate_model's numbers
-        model, _, _ = load_model(runs["vlstm"], ds.game)
-        direct = evaluate_model(model, ds, batch_size=3)
-    got = next(r for r in rep.results if r.kind == "vlstm").metrics
-    for k in METRICS:
-        assert got[k] == pytest.approx(direct[k], rel=1e-5, abs=1e-7)
+    # independent reference: the model run one sample at a time, the metrics recomputed
+    # with numpy loops from their definitions (marginal model: joint scenes by ordering
+    # each agent's modes by its probability)
+    for name, kind in (("vlstm", "vlstm"), ("epo", "epo")):
+        with SceneDataset(data, "test") as ds:
+            model, _, _ = load_model(runs[name], ds.game)
+            model.eval()
+            radii = np.array([a.radius for a in ds.game.agents])
+            per_sample = []
+            with torch.no_grad():
+                for batch in ds.batches(1):
+                    out = model(batch)
+                    logits = out["marginal_logits" if "marginal_logits" in out else "logits"]
+                    probs = torch.softmax(logits, -1)[0].double().numpy()
+                    per_sample.append(
+                        _numpy_metrics(
+                            out["pos"][0].double().numpy(),
+                            batch["gt"][0].double().numpy(),
+                            probs,
+                            radii,
+                        )  # fmt: skip
+                    )
+            direct = evaluate_model(model, ds, batch_size=3)  # batches of 3, 3 and 2
+        ref = {k: np.mean([m[k] for m in per_sample]) for k in METRICS}
+        got = next(r for r in rep.results if r.kind == kind).metrics
+        assert len(per_sample) == 8 == direct["samples"] and ref["minADE"] > 1e-3
+        for k in METRICS:
+            assert got[k] == pytest.approx(ref[k], rel=1e-5, abs=1e-6), (name, k)
+            assert direct[k] == pytest.approx(ref[k], rel=1e-5, abs=1e-6), (name, k)
     with pytest.raises(SpecError, match="split"):
         evaluate([runs["epo"]], data, "dev")
     with pytest.raises(SpecError, match="runs"):
         evaluate([], data)
+
+
+def _numpy_metrics(pos, gt, probs, radii):
+    """One sample's metrics from their definitions: ``pos`` (M, N, T, 2), ``gt`` (N, T, 2),
+    ``probs`` joint (M,) or marginal (N, M), ``radii`` (N,)."""
+    M, N, T, _ = pos.shape
+    d = np.sqrt(((pos - gt[None]) ** 2).sum(-1))  # (M, N, T)
+    ade = np.mean([min(d[m, i].mean() for m in range(M)) for i in range(N)])
+    fde = np.mean([min(d[m, i, T - 1] for m in range(M)) for i in range(N)])
+    if probs.ndim == 2:  # marginal: joint mode m takes every agent's m-th most likely mode
+        order = [sorted(range(M), key=lambda m, i=i: -probs[i, m]) for i in range(N)]
+        pos = np.stack([np.stack([pos[order[i][m], i] for i in range(N)]) for m in range(M)])
+        joint = np.array([np.prod([probs[i, order[i][m]] for i in range(N)]) for m in range(M)])
+        probs = joint / joint.sum()
+        d = np.sqrt(((pos - gt[None]) ** 2).sum(-1))
+    sade = min(d[m].mean() for m in range(M))
+    sfde = min(d[m, :, T - 1].mean() for m in range(M))
+    best = pos[int(np.argmax(probs))]
+    overlap = any(
+        np.linalg.norm(best[i, t] - best[j, t]) < radii[i] + radii[j]
+        for i in range(N)
+        for j in range(i + 1, N)
+        for t in range(T)
+    )
+    return {"minADE": ade, "minFDE": fde, "minSADE": sade, "minSFDE": sfde, "OR": float(overlap)}
 
 
 @pytest.mark.parametrize("which", ["epo", "sc0", "cv"])
@@ -173,3 +221,32 @@ def test_show_predictions_writes_a_png(runs, tmp_path, which):
     assert out.read_bytes()[:8] == PNG and out.stat().st_size > 10_000
     with pytest.raises(SpecError, match="index"):
         show_predictions(run, synthetic_dataset(), 99, tmp_path / "x.png")
+
+
+def test_evaluate_cli_out_directory_and_choices(tmp_path, capsys):
+    """`epo evaluate --out DIR` writes DIR/results.*; the old file form still works with a
+    deprecation message; --split and --model are choices."""
+    from scenarios.cli import main
+
+    base = ["evaluate", "--model", "cv", "--data", str(synthetic_dataset())]
+    assert main([*base, "--out", str(tmp_path / "res")]) == 0
+    md = (tmp_path / "res" / "results.md").read_text()
+    assert md.startswith("Split `test`") and "| CV | 1 |" in md
+    assert (tmp_path / "res" / "results_runs.csv").exists()
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "old.md")]) == 0
+    assert "deprecated" in capsys.readouterr().err
+    assert (tmp_path / "old.md").read_text() == md and (tmp_path / "old_runs.csv").exists()
+    assert main([*base, "--split", "dev"]) == 2
+    assert "'dev' is not one of 'train', 'val', 'test'" in capsys.readouterr().err
+    assert main(["evaluate", "--model", "lstm", "--data", str(synthetic_dataset())]) == 2
+    assert "'lstm' is not 'cv'" in capsys.readouterr().err
+
+
+def test_empty_split_warns():
+    """Closes: an empty split giving `minADE nan` without a word."""
+    with SceneDataset(synthetic_dataset(), "test") as ds:
+        ds.batches = lambda batch_size: iter(())
+        with pytest.warns(UserWarning, match="split 'test' of .* has no samples"):
+            m = evaluate_model(ConstantVelocity(ds.game.K, ds.modes), ds)
+    assert m["samples"] == 0 and np.isnan(m["minADE"])

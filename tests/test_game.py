@@ -496,3 +496,19 @@ def test_check_number_and_bool_name_the_field():
     assert check_bool("b", False) is False
     with pytest.raises(SpecError, match="True or False"):
         check_bool("b", 1)
+
+
+def test_specs_are_frozen_and_bounds_need_lower_below_upper():
+    import dataclasses
+
+    from epo_casadi import VelocityBound
+
+    a = AgentSpec("a", "unicycle", [Acceleration()], x0=[0, 0, 1, 0])
+    spec = GameSpec([a], horizon=3, dt=0.1)
+    for obj, name in ((a, "radius"), (spec, "horizon")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, name, getattr(obj, name))
+    for lo, hi in ((1.0, 1.0), (2.0, 1.0)):  # lower == upper is an empty band too
+        with pytest.raises(SpecError, match="lower < upper"):
+            VelocityBound(lower=lo, upper=hi)
+    assert VelocityBound(lower=1.0, upper=np.nextafter(1.0, 2.0)).upper > 1.0

@@ -420,7 +420,44 @@ def test_documented_game_file_loads():
 
 
 def test_base_is_untouched_between_cases():
-    """The mutations above work on copies: the example itself stays valid."""
+    """parse_game never changes the mapping it reads (the cases above may reuse theirs)."""
     d = base()
-    parse_game(copy.deepcopy(d))
-    assert d == base()
+    d["agents"][0]["features"].append("jerk")  # bare names and dicts, nested lists
+    snapshot = copy.deepcopy(d)
+    parse_game(d)
+    assert d == snapshot
+
+
+# ------------------------------------------------------------------- solver.ilq (iLQ)
+@pytest.mark.parametrize(
+    "values, field, words",
+    [
+        ({"max_itr": 3}, "solver.ilq.max_itr", "unknown option"),
+        ({"tol": -1}, "solver.ilq.tol", ">= 0"),
+        ({"line_search": "armijo"}, "solver.ilq.line_search", "expected one of"),
+        ({"memory": 0}, "solver.ilq.memory", ">= 1"),
+        ({"step_size": float("nan")}, "solver.ilq.step_size", "finite"),
+        ({"compiled": "yes"}, "solver.ilq.compiled", "True or False"),
+        ([1, 2], "solver.ilq", "mapping"),
+    ],
+)
+def test_ilq_section_is_validated_like_lm_and_ipopt(values, field, words):
+    d = base()
+    d["solver"] = {"ilq": values}
+    with pytest.raises(SpecError) as e:
+        parse_game(d)
+    assert e.value.field == field, str(e.value)
+    assert words in e.value.message, str(e.value)
+
+
+def test_ilq_section_reaches_the_options_and_round_trips(tmp_path):
+    from solvers.ilq import ILQOptions
+
+    d = base()
+    d["solver"] = {"ilq": {"max_iter": 7, "tol": 1e-7, "line_search": "none"}}
+    gf = parse_game(d)
+    opts = gf.options("ilq", max_iter=9)
+    assert opts == ILQOptions(max_iter=9, tol=1e-7, line_search="none")
+    assert gf.options("ilq").max_iter == 7
+    back = parse_game(dump_game(gf))
+    assert back.solver_options == {"ilq": {"max_iter": 7, "tol": 1e-7, "line_search": "none"}}

@@ -407,7 +407,12 @@ def test_custom_costs_are_checked(lq):
 
 
 def test_batch_and_jerk_game():
-    """A batch is solved problem by problem; a jerk feature's cross-stage curvature is dropped."""
+    """A batch is solved problem by problem. A jerk feature couples consecutive stages: the
+    previous accelerations are carried as extra states, so no curvature is dropped, and the
+    feedback first-order conditions hold along the policy that also feeds back on them
+    (central differences of each player's cost, independent numpy rollout). Here the other
+    player's reaction to one's previous acceleration is weak, so this check does not
+    discriminate the extra gains; the LQ test below does."""
     agents = [
         AgentSpec(
             "a",
@@ -427,10 +432,95 @@ def test_batch_and_jerk_game():
     g = PotentialGame(GameSpec(agents, [Collision(weight=5.0)], horizon=15, dt=0.1))
     p = g.default_params()
     solver = ILQSolver(g)
-    assert solver.dropped_cross_stage > 0
-    one = solve_ilq(g, p, options={"tol": 1e-8})
+    assert solver.dropped_cross_stage == 0
+    assert list(solver.aug) == [0, 2]  # positions of both accelerations in U_k
+    one = solve_ilq(g, p, options={"tol": 1e-10})
     assert one.status is Status.CONVERGED
-    batch = solve_ilq(g, np.stack([p, p]), np.zeros((2, g.n_u)), options={"tol": 1e-8})
+    assert one.info["gains_prev"].shape == (g.K, 4, 2)
+    assert np.abs(one.info["gains_prev"]).max() > 1e-3  # the policy does use them
+    batch = solve_ilq(g, np.stack([p, p]), np.zeros((2, g.n_u)), options={"tol": 1e-10})
     assert batch.controls.shape == (2, g.n_u) and batch.info["gains"].shape == (2, g.K, 4, 8)
     np.testing.assert_allclose(batch[1].controls, one.controls, atol=1e-12)
     assert list(batch.ok) == [True, True]
+
+    X, U = to_stages(g, one.states, one.controls)
+    P, Q, a = one.info["gains"], one.info["gains_prev"], one.info["feedforward"]
+    cost_fn = g.function("traj_agent_costs")
+
+    def closed_loop_cost(i, d):
+        x, dy, xs, us = X[0].copy(), np.zeros(2), [X[0]], []
+        for k in range(g.K):
+            u = U[k] - P[k] @ (x - X[k]) - Q[k] @ dy - a[k]
+            u[2 * i : 2 * i + 2] += d[k]
+            dy = (u - U[k])[[0, 2]]
+            x = unicycle_step(x, u, g.dt)
+            xs.append(x)
+            us.append(u)
+        xf, uf = from_stages(g, np.array(xs), np.array(us))
+        return float(cost_fn(xf, uf, p)[i])
+
+    h = 1e-6
+    for i in range(2):
+        np.testing.assert_allclose(
+            closed_loop_cost(i, np.zeros((g.K, 2))), one.agent_costs[i], rtol=1e-10
+        )
+        grad = np.zeros((g.K, 2))
+        for k in range(g.K):
+            for c in range(2):
+                d = np.zeros((g.K, 2))
+                d[k, c] = h
+                grad[k, c] = (closed_loop_cost(i, d) - closed_loop_cost(i, -d)) / (2 * h)
+        assert np.max(np.abs(grad)) < 1e-6, (i, np.max(np.abs(grad)))
+
+
+def test_jerk_lq_problem_is_solved_in_one_iteration():
+    """One double integrator with quadratic goal, acceleration and jerk terms is an LQ
+    problem once the previous acceleration is carried as a state: iLQ must solve it
+    exactly in one iteration (dropping the jerk's cross-stage curvature took dozens),
+    and with one player the feedback solution is the potential minimizer (LM)."""
+    agents = [
+        AgentSpec(
+            "a",
+            "double_integrator",
+            [Goal(weight=2.0), Acceleration(), Jerk(weight=0.3)],
+            x0=[0.0, 0.0, 1.0, 0.0],
+            goal=[2.0, 1.0],
+        )
+    ]
+    g = PotentialGame(GameSpec(agents, [], horizon=20, dt=0.1))
+    p = g.default_params()
+    res = solve_ilq(g, p, options={"tol": 1e-9})
+    assert res.status is Status.CONVERGED and res.iterations == 1
+    assert list(res.info["prev_variables"]) == [0, 1]  # both accelerations are carried
+    lm = solve_lm(g, p, options={"gtol": 1e-12})
+    np.testing.assert_allclose(res.controls, lm.controls, atol=1e-8)
+
+
+def test_line_search_ends_the_two_cycle_of_full_steps():
+    """On crossing2, full steps alternate between two iterates (max |a| 0.38 and 2.9) for
+    ever; the default residual line search (merit: RMS of a, non-monotone over 5) ends it."""
+    from scenarios.gamefile import example_path, load_game
+
+    gf = load_game(example_path("crossing2"))
+    g, p = gf.game, gf.params
+    plain = solve_ilq(g, p, options={"line_search": "none", "max_iter": 40})
+    assert plain.status is Status.MAX_ITER
+    h = plain.info["residual_history"]
+    np.testing.assert_allclose(h[-4:-2], h[-2:], rtol=1e-6)  # a two-cycle
+    res = solve_ilq(g, p)
+    assert res.status is Status.CONVERGED and res.info["stop"] == "tol"
+    assert res.info["stationarity"] <= ILQOptions().tol and res.info["max_regularization"] == 0
+
+
+def test_no_usable_step_is_stalled_with_the_honest_residual():
+    """A trust region no step fits in: regularization climbs (shrinking a) until max |a| is
+    small only because of it; the solve is 'stalled', and the reported max |a| is the one
+    at the requested regularization, far above tol. The iterate is the start's rollout."""
+    g = crossing_game(N=2, K=20, offset=0.5)
+    p = g.default_params()
+    res = solve_ilq(g, p, options={"max_state_step": 1e-12})
+    assert res.status is Status.STALLED and not res.ok
+    assert res.info["stop"] in ("regularized_only", "line_search")
+    assert res.info["stationarity"] > 1e-3
+    assert res.info["max_regularization"] >= 1e4
+    np.testing.assert_array_equal(res.controls, np.zeros(g.n_u))

@@ -283,3 +283,165 @@ def test_inspect_imports_no_plotting():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False False"
+
+
+# ----------------------------------------------------------------------------- formulas
+def _formula_value(game, t, u, p):
+    """Evaluate a term's formula() expression with the symbols replaced by the rolled-out
+    states, controls and parameters at every step of the term: one row block per step."""
+    import casadi as ca
+
+    from epo_casadi.inspect import FormulaSymbols, _feature_of
+
+    i = game.agent_names.index(t.agents[0])
+    expr = _feature_of(game, t).formula(FormulaSymbols(game, i))
+    if isinstance(expr, str):
+        return None
+    x = np.asarray(game.function("rollout")(u, p)).ravel()
+    X, U = game.split_states(x)[i], game.split_controls(u)[i]
+    a = game.agents[i]
+    names = {e: p[j] for j, e in enumerate(game.params.names)}
+    syms = ca.symvar(expr)
+    f = ca.Function("f", syms, [expr])
+    out = []
+    for k in t.steps:
+        vals = []
+        for s in syms:
+            n = s.name()
+            if n in names:
+                vals.append(names[n])
+                continue
+            base, label = n.rsplit("_", 1)
+            step = {"k": k, "{k+1}": k + 1, "K": game.K}[label]
+            if base in a.dynamics.state_names:
+                vals.append(X[step, a.dynamics.state_names.index(base)])
+            else:
+                vals.append(U[step, a.dynamics.control_names.index(base)])
+        out.append(np.asarray(f(*vals), dtype=float).ravel())
+    return np.concatenate(out)
+
+
+def test_formulas_evaluate_to_the_residual():
+    """Each built-in formula(), evaluated with the solution's numbers, gives the term's
+    residual rows divided by the weight (so the formula is the feature's own definition)."""
+    from epo_casadi.inspect import term_formula
+
+    game = always_active_game()
+    p = game.default_params()
+    u = RNG.normal(scale=0.3, size=game.n_u)
+    r = np.asarray(game.function("residual")(u, p)).ravel()
+    checked = 0
+    for t in game.terms:
+        tf = term_formula(game, t)
+        assert tf["source"] == "formula()"
+        assert tf["formula"].startswith(t.weight + " * ")
+        if t.kind != "own":
+            continue
+        val = _formula_value(game, t, u, p)
+        if val is None:  # path: a sentence, not an expression
+            assert "min over segments" in tf["residual"]
+            continue
+        w = p[game.params[t.weight].start]
+        np.testing.assert_allclose(val * w, r[t.rows], rtol=1e-12, atol=1e-12)
+        checked += 1
+    assert checked >= 15
+    goal = term_formula(game, game.terms[0])
+    assert goal["formula"] == "w.uni.goal * [(x_K-goal.uni.x), (y_K-goal.uni.y)]"
+    coll = next(t for t in game.terms if t.kind == "pair")
+    text = term_formula(game, coll)["residual"]
+    assert "uni.x_k" in text and "bic.x_k" in text and "max(0" in text
+
+
+def test_feature_without_formula_gets_the_generic_display():
+    from dataclasses import dataclass
+
+    from epo_casadi.features import Velocity
+    from epo_casadi.inspect import term_formula
+
+    @dataclass(frozen=True)
+    class Mine(Velocity):  # a user feature that declares no formula
+        def formula(self, s):
+            return None
+
+    a = AgentSpec("a", "unicycle", [Mine(label="mine")], x0=[0, 0, 1, 0])
+    game = PotentialGame(GameSpec([a], horizon=5))
+    tf = term_formula(game, game.terms[0])
+    assert tf["residual"] == "v_1" and "generic" in tf["source"]
+
+
+# ----------------------------------------------------------------------------- report
+def test_hessian_pattern_is_that_of_jt_j():
+    from epo_casadi.inspect import hessian_pattern, hessian_sparsity
+
+    game = always_active_game()
+    p = game.default_params()
+    u = RNG.normal(scale=0.3, size=game.n_u)
+    J = _fd_jacobian(game, u, p)
+    B = (J != 0).astype(int)
+    ref = (B.T @ B) > 0
+    H = hessian_pattern(game).toarray()
+    np.testing.assert_array_equal(H, ref)
+    hs = hessian_sparsity(game)
+    assert hs["nnz"] == int(ref.sum())
+    assert sum(map(sum, hs["agent_blocks"])) == hs["nnz"]
+    # the exact Hessian's structure lies inside the Gauss-Newton pattern
+    Hx = np.asarray(game.function("hessian")(u, p))
+    assert not np.any((Hx != 0) & ~H)
+
+
+def test_term_series_and_report(crossing):
+    from epo_casadi.inspect import ENERGY_CONVENTION, inspect_report, report_text, term_series
+
+    game = crossing
+    p = game.default_params()
+    u = RNG.normal(scale=0.2, size=game.n_u)
+    e = np.asarray(game.function("term_energies")(u, p)).ravel()
+    r = np.asarray(game.function("residual")(u, p)).ravel()
+    for s, t in zip(term_series(game, u, p), game.terms, strict=True):
+        np.testing.assert_allclose(sum(s["energy"]), e[t.index], rtol=1e-12, atol=1e-15)
+        rows = r[t.rows].reshape(len(t.steps), -1)
+        assert s["active"] == [k for k, row in zip(t.steps, rows, strict=True) if np.any(row)]
+    coll = [s for s, t in zip(term_series(game, u, p), game.terms, strict=True) if t.kind == "pair"]
+    assert any(0 < len(s["active"]) < len(s["steps"]) for s in coll)  # active on some steps
+    rep = inspect_report(game, p, u)
+    text = report_text(game, rep)
+    assert text.count(ENERGY_CONVENTION) == 1 and "enters squared" in ENERGY_CONVENTION
+    assert f"energy E = {e.sum():.6g}" in text
+    assert f"{rep['hessian']['nnz']} structural nonzeros" in text
+    assert "legend:" in text and "x+ = x+(0.1*(v*cos(theta)))" in text
+    assert rep["dynamics"][0]["agents"] == game.agent_names
+    assert rep["dynamics"][0]["integrator"] == "explicit Euler"
+    np.testing.assert_allclose([v for b in rep["params"] for v in b["values"]], p, rtol=0, atol=0)
+
+
+def test_cli_inspect_json_matches_text(tmp_path):
+    """`epo inspect --solve --json` parses, and its numbers are the ones the text shows."""
+    import json
+
+    from scenarios.gamefile import example_path
+
+    game_file = str(example_path("crossing2"))
+    epo = [sys.executable, "-m", "scenarios.cli"]
+    common = ["inspect", game_file, "--solve", "--set", "w.a0.goal=4"]
+    plot = tmp_path / "t.png"
+    js = subprocess.run(
+        [*epo, *common, "--json"], capture_output=True, text=True, check=True
+    ).stdout
+    txt = subprocess.run(
+        [*epo, *common, "--plot", str(plot)], capture_output=True, text=True, check=True
+    ).stdout
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rep = json.loads(js)
+    assert rep["format"] == "epo-inspect/1"
+    assert f"energy E = {rep['solution']['energy']:.6g}" in txt
+    for s in rep["solution"]["terms"]:
+        assert f"{s['energy']:.6g}" in txt
+    for a in rep["solution"]["agent_costs"]:
+        assert f"{a['cost']:.6g}" in txt
+    for t in rep["terms"]:
+        assert t["formula"] in txt
+    assert next(t for t in rep["terms"] if t["weight"] == "w.a0.goal")["weight_value"] == 4.0
+    assert f"{rep['jacobian']['nnz']} structural nonzeros" in txt
+    assert f"{rep['hessian']['nnz']} structural nonzeros" in txt
+    X = np.asarray(rep["solution"]["states"]["a0"])
+    assert X.shape == (31, 4)

@@ -117,45 +117,143 @@ def test_unrolled_outputs_equal_solve_lm(options):
         assert (ref.iterations < options.steps).all() and len(set(ref.iterations)) > 1
 
 
-def test_implicit_outputs_equal_solve_lm(game):
+def test_implicit_forward_is_the_newton_optimum(game):
+    """The implicit forward stops at a stationary point: an exact Newton refinement (an
+    independent solver using the Hessian) barely moves it, and the gradient is ~0 there."""
     layer = GameLayer(game, backward="implicit")
     P = np.tile(game.default_params(), (2, 1))
     U = 0.05 * np.random.default_rng(2).normal(size=(2, game.n_u))
     out = layer(torch.tensor(P), torch.tensor(U))
-    ref = solve_lm(game, P, U, LMOptions())
-    assert np.array_equal(out.controls.numpy(), ref.controls)
-    assert np.array_equal(out.states.numpy(), ref.states)
     assert (out.status == CONVERGED).all()
+    u = out.controls.numpy()
+    assert np.abs(u - U).max() > 0.1  # the solve moved far from the start
+    # LM stops by ftol here (|grad| ~ 4e-7 > gtol; Gauss-Newton converges linearly with
+    # non-zero residuals), ~1e-6 from the optimum; the Hessian is well conditioned (~2.5)
+    np.testing.assert_allclose(u, newton_polish(game, u, P), rtol=0, atol=5e-6)
+    grad = game.function("gradient")
+    for b in range(2):
+        assert np.abs(np.array(grad(u[b], P[b])).ravel()).max() <= 5e-6
+    roll = game.function("rollout")
+    X = np.array([np.array(roll(u[b], P[b])).ravel() for b in range(2)])
+    np.testing.assert_allclose(out.states.numpy(), X, rtol=0, atol=1e-12)
 
 
-def test_other_backend_is_used_and_agrees(game):
-    from solvers.structured import StructuredGN
+class CountingDense(DenseGN):
+    """The dense backend, counting its calls."""
 
-    class Counting(DenseGN):
-        calls = {"linearize": 0, "solve": 0}
+    def __init__(self, game):
+        super().__init__(game)
+        self.calls = {"linearize": 0, "solve": 0}
 
+    def linearize(self, U, P):
+        self.calls["linearize"] += 1
+        return super().linearize(U, P)
+
+    def solve(self, lin, damping, rhs, ellipsoidal=False):
+        self.calls["solve"] += 1
+        return DenseGN.solve(lin, damping, rhs, ellipsoidal)
+
+
+def counting_structured(game):
+    """A structured backend (no dense fallback asserted) that counts its own Riccati solves."""
+    from solvers.structured import StructuredGN, StructuredLinearization
+
+    class Counting(StructuredGN):
         def linearize(self, U, P):
+            lin = super().linearize(U, P)
+            assert isinstance(lin, StructuredLinearization)
             self.calls["linearize"] += 1
-            return super().linearize(U, P)
+            return lin
 
         def solve(self, lin, damping, rhs, ellipsoidal=False):
+            assert isinstance(lin, StructuredLinearization)  # never the dense path
             self.calls["solve"] += 1
-            return DenseGN.solve(lin, damping, rhs, ellipsoidal)
+            return super().solve(lin, damping, rhs, ellipsoidal)
 
-    opts = LMOptions.paper()
     be = Counting(game)
-    u0, w_own, w_pair, goal, x0 = inputs(GameLayer(game, opts))
-    grads = {}
-    for name, backend in (("counting", be), ("structured", StructuredGN(game))):
-        layer = GameLayer(game, opts, backend=backend)
+    be.calls = {"linearize": 0, "solve": 0}
+    assert be.fallback is None
+    return be
+
+
+class NaNAtSecondLinearization(DenseGN):
+    """The dense backend, with problem 1's energy turned NaN at its second linearization
+    (after the first step): the problem must be frozen there and the others go on."""
+
+    def __init__(self, game):
+        super().__init__(game)
+        self.count = 0
+
+    def linearize(self, U, P):
+        lin = super().linearize(U, P)
+        self.count += 1
+        if self.count == 2:
+            lin.energy[1] = np.nan
+        return lin
+
+
+def test_problem_turning_nonfinite_mid_solve_is_frozen(game):
+    opts = LMOptions.paper(steps=3)
+    layer = GameLayer(game, opts, backend=NaNAtSecondLinearization(game))
+    u0, _, _, goal, _ = inputs(layer)
+    p = layer.assemble_params(goal=goal)
+    out = layer(p, u0)
+    assert out.status.tolist() == [MAX_ITER, NONFINITE]
+    ref = solve_lm(
+        game, p.detach().numpy(), u0.detach().numpy(), opts, backend=NaNAtSecondLinearization(game)
+    )
+    assert list(ref.status) == [Status.MAX_ITER, Status.NONFINITE]
+    assert np.array_equal(out.controls.detach().numpy(), ref.controls)
+    torch.testing.assert_close(out.controls[1], u0[1].detach(), rtol=0, atol=0)  # frozen at u0
+    # problem 0 is untouched by its neighbour: as solved alone with a clean backend
+    alone = GameLayer(game, opts, backend=DenseGN(game))
+    out0 = alone(layer.assemble_params(goal=goal[:1]), u0[:1])
+    torch.testing.assert_close(out.controls[:1], out0.controls, rtol=0, atol=1e-12)
+    g = torch.autograd.grad(out.states[0].square().sum(), goal)[0]
+    g0 = torch.autograd.grad(out0.states.square().sum(), goal)[0]
+    assert torch.isfinite(g).all() and (g[1] == 0).all() and (g[0] != 0).any()
+    torch.testing.assert_close(g[:1], g0[:1], rtol=1e-10, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def game8() -> PotentialGame:
+    """The head-on game with K = 8: there the structured backend does not fall back."""
+    g = PotentialGame(head_on_spec(K=8))
+    from solvers.structured import StructuredGN
+
+    assert StructuredGN(g).fallback is None
+    return g
+
+
+def test_default_backend_is_structured_without_fallback(game8, game):
+    from solvers.structured import StructuredGN
+
+    for g, falls_back in ((game8, False), (game, True)):
+        be = GameLayer(g, LMOptions.paper()).core.backend
+        assert isinstance(be, StructuredGN) and (be.fallback is not None) == falls_back
+
+
+def test_dense_and_structured_backends_agree_in_the_layer(game8):
+    opts = LMOptions.paper()
+    dense, struct = CountingDense(game8), counting_structured(game8)
+    u0, w_own, w_pair, goal, x0 = inputs(GameLayer(game8, opts))
+    p = GameLayer(game8, opts).assemble_params(goal=goal).detach().numpy()
+    assert (collision_energy(game8, u0.detach().numpy(), p) > 0.1).all()
+    outs, grads = {}, {}
+    for name, backend in (("dense", dense), ("structured", struct)):
+        layer = GameLayer(game8, opts, backend=backend)
         p = layer.assemble_params(goal=goal)
         out = layer(p, u0)
         grads[name] = torch.autograd.grad(out.states.square().sum(), (u0, goal))
-        if name == "counting":  # S linearizations and S solves forward, S solves backward
-            assert be.calls == {"linearize": 2, "solve": 2 + 2}
-        ref = solve_lm(game, p.detach().numpy(), u0.detach().numpy(), opts, backend=backend)
+        # S linearizations and S solves forward, S solves backward
+        assert backend.calls == {"linearize": 2, "solve": 2 + 2}, name
+        ref = solve_lm(game8, p.detach().numpy(), u0.detach().numpy(), opts, backend=backend)
         assert np.array_equal(out.controls.detach().numpy(), ref.controls)
-    for a, b in zip(grads["counting"], grads["structured"], strict=True):
+        outs[name] = out.controls.detach()
+    assert (outs["dense"] - u0.detach()).abs().max() > 1e-2  # the steps moved
+    torch.testing.assert_close(outs["dense"], outs["structured"], rtol=0, atol=1e-12)
+    for a, b in zip(grads["dense"], grads["structured"], strict=True):
+        assert a.abs().max() > 0
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 
@@ -221,6 +319,36 @@ def test_gradcheck_implicit(game):
     assert (collision_energy(game, out.controls.detach().numpy(), p) > 0).all()  # active at u*
     g = torch.autograd.grad(out.controls.sum() + out.states.sum(), u0)[0]
     assert torch.equal(g, torch.zeros_like(g))  # implicit mode: no dependence on u_init
+
+
+@pytest.mark.parametrize("backward", ["unrolled", "implicit"])
+def test_gradcheck_structured_backend(game8, backward):
+    """Both backward modes through the structured (Riccati) backend, which really runs here
+    (no dense fallback; every solve goes through its stage recursion), against float64
+    finite differences."""
+    opts = LMOptions.paper() if backward == "unrolled" else LMOptions(steps=100)
+    be = counting_structured(game8)
+    layer = GameLayer(game8, opts, backward, backend=be)
+    u0, w_own, w_pair, goal, x0 = inputs(layer)
+    p = layer.assemble_params(goal=goal).detach().numpy()
+    assert (collision_energy(game8, u0.detach().numpy(), p) > 0.1).all()
+    roll = game8.function("rollout")
+
+    def f(u0, w_own, w_pair, goal, x0):
+        p = layer.assemble_params(w_own=w_own, w_pair=w_pair, goal=goal, x0=x0)
+        out = layer(p, u0)
+        if backward == "unrolled":
+            return out.controls, out.states
+        assert (out.status == CONVERGED).all()
+        P = p.detach().numpy()
+        U = newton_polish(game8, out.controls.detach().numpy(), P)
+        X = np.array([np.array(roll(ub, pb)).ravel() for ub, pb in zip(U, P, strict=True)])
+        du = torch.tensor(U) - out.controls.detach()
+        assert du.abs().max() < 1e-6
+        return out.controls + du, out.states + (torch.tensor(X) - out.states.detach())
+
+    assert torch.autograd.gradcheck(f, (u0, w_own, w_pair, goal, x0))
+    assert be.calls["solve"] > 0 and be.calls["linearize"] > 0
 
 
 def test_unrolled_approaches_implicit(game):
@@ -401,6 +529,12 @@ def test_assemble_params(game):
     assert float(gw) == game.params["w.a0-a1.collision"].start
     batched = layer.assemble_params(x0=torch.zeros(5, 8))
     assert batched.shape == (5, game.n_p) and batched.dtype == torch.float32  # the values' dtype
+    # per-agent blocks (..., N, 2) with batch dimensions: the same as flat (..., 2 N)
+    goals = torch.arange(3 * 5 * 4, dtype=torch.float64).reshape(3, 5, 2, 2)
+    torch.testing.assert_close(
+        layer.assemble_params(goal=goals), layer.assemble_params(goal=goals.reshape(3, 5, 4))
+    )
+    assert layer.assemble_params(goal=goals).shape == (3, 5, game.n_p)
     with pytest.raises(SpecError, match="w_pair"):
         layer.assemble_params(w_pair=torch.ones(3))
     with pytest.raises(SpecError, match="unknown parameter block"):
@@ -481,3 +615,13 @@ def test_step_vjp_is_built_once(game):
     assert layer_functions(game, "lm_step_vjp") is layer_functions(game, "lm_step_vjp")
     f = layer_functions(game, "lm_step_vjp")
     assert f.name_in() == ["u", "p", "du", "z"] and f.name_out() == ["gu", "gp"]
+
+
+def test_documented_defaults(game):
+    """The defaults the docstring promises: paper options for the unrolled mode, a
+    converging LMOptions() for the implicit one, errors on invalid input, CasADi's
+    interpreter (no C compiler needed)."""
+    layer = GameLayer(game)
+    assert layer.backward == "unrolled" and layer.options == LMOptions.paper()
+    assert layer.on_invalid == "raise" and layer.compiled is False
+    assert GameLayer(game, backward="implicit").options == LMOptions()

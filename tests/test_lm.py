@@ -86,7 +86,8 @@ def test_lm_reaches_closed_form_optimum():
     assert res.energy_history[0] == pytest.approx(float(g.function("energy")(np.zeros(g.n_u), p)))
 
 
-def test_lm_paper_setting_equals_hand_written_steps():
+@pytest.mark.parametrize("backend", ["dense", "structured"])
+def test_lm_paper_setting_equals_hand_written_steps(backend):
     g = crossing_game(offset=0.3)
     p = g.default_params()
     rng = np.random.default_rng(1)
@@ -95,7 +96,7 @@ def test_lm_paper_setting_equals_hand_written_steps():
         for _ in range(g.N)
     ]
     u0 = g.join_controls(parts)
-    res = solve_lm(g, p, u0, LMOptions.paper())
+    res = solve_lm(g, p, u0, LMOptions.paper(backend=backend))
     assert int(res.iterations) == 2
     assert res.energy_history.shape == (3,)
     assert res.status is Status.MAX_ITER
@@ -217,3 +218,47 @@ def test_backend_is_built_once_per_game_and_reused():
         solve_lm(g, g.default_params(), options=opts),
     )
     np.testing.assert_array_equal(first.controls, second.controls)
+
+
+def test_gtol_stops_at_the_first_iterate_below_it():
+    """Stopping rule by |J'r|_inf <= gtol alone (ftol off): the solve stops at the first
+    iterate that meets it; one step fewer does not."""
+    g = di_game()
+    p = g.default_params(goal__di=[2.0, -1.5])
+    opts = LMOptions(ftol=0.0, gtol=1e-8)
+    res = solve_lm(g, p, options=opts)
+    assert res.status is Status.CONVERGED and res.grad_norm <= 1e-8
+    assert res.info["stop"] == "gtol"  # the stop reasons of docs/solvers.md
+    assert 1 < res.iterations < opts.steps
+    shorter = solve_lm(g, p, options=LMOptions(ftol=0.0, gtol=1e-8, steps=int(res.iterations) - 1))
+    assert shorter.status is Status.MAX_ITER and shorter.grad_norm > 1e-8
+    assert shorter.info["stop"] == "max_iter"
+
+
+def test_ftol_stops_at_the_first_small_relative_decrease():
+    """With fixed damping (every step accepted) and gtol off, the solve stops after the first
+    step that lowers E by <= ftol (1 + E), and no earlier step did."""
+    g = crossing_game(offset=0.3)
+    p = g.default_params()
+    u0 = g.join_controls([np.tile([1.0, 0.0], (g.K, 1)) for _ in range(g.N)])
+    ftol = 1e-6
+    opts = LMOptions(adaptive_damping=False, damping=1.0, gtol=0.0, ftol=ftol, steps=200)
+    res = solve_lm(g, p, u0, opts)
+    k = int(res.iterations)
+    assert 2 < k < opts.steps and res.status is not Status.MAX_ITER
+    h = res.energy_history[: k + 1]
+    dec = h[:-1] - h[1:]
+    assert dec[-1] <= ftol * (1 + abs(h[-1])) and res.info["stop"] == "ftol"
+    assert np.all(dec[:-1] > ftol * (1 + np.abs(h[1:-1])))
+
+
+def test_rejected_steps_raise_the_damping_and_the_solve_goes_on():
+    """From zero controls with a tiny damping the first Gauss-Newton steps overshoot: they
+    are rejected (E unchanged, lambda x10) and the solve continues to a stationary point."""
+    g = crossing_game(offset=0.3)
+    p = g.default_params()
+    res = solve_lm(g, p, options=LMOptions(damping=1e-9))
+    lam = res.info["damping_history"]
+    assert lam[1] == pytest.approx(10 * lam[0]) and res.energy_history[1] == res.energy_history[0]
+    assert res.iterations > 10 and res.energy < 0.6 * res.energy_history[0]
+    assert res.status is Status.CONVERGED and res.grad_norm <= 1e-4

@@ -391,3 +391,135 @@ def test_library_specs_bound_horizon_and_every_like_game_files():
     ):
         GameSpec(agents, [Collision(every=11)], horizon=10)
     GameSpec(agents, [Collision(every=10)], horizon=10)  # the last step is a row: accepted
+
+
+# --------------------------------------------------------------------------------------
+# The same class for iLQ results and multi-modal results (epo solve --solver ilq,
+# epo solve --modes N): every writer total over every status and over an empty mode list.
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("status", list(Status))
+def test_every_status_through_ilq_and_mode_writers(status, crossing, tmp_path):
+    from scenarios.commands.solve import mode_lines, modes_dict
+    from scenarios.plotting import plot_modes
+    from solvers.ilq import ILQOptions
+    from solvers.multimodal import Mode, MultiModalResult
+
+    game, p = crossing.game, crossing.params
+    x = np.asarray(game.function("rollout")(np.zeros(game.n_u), p)).ravel()
+    x[7:40] = np.nan
+    res = SolveResult(
+        solver="ilq",
+        controls=np.zeros(game.n_u),
+        states=x,
+        energy=np.array(np.nan),
+        agent_costs=np.array([np.inf, 2.5]),
+        status=status,
+        iterations=np.array(2),
+        energy_history=np.array([1.0, np.nan, np.inf]),
+        grad_norm=np.array(np.nan),
+        wall_time=0.1,
+        info={"options": ILQOptions(), "stationarity": np.inf, "stop": "line_search"},
+    )
+    data = result_dict(game, p, res, source="crossing2.yaml")
+    assert data["feedback_residual"] is None and data["stop"] == "line_search"
+    back = json.loads(write_result(data, tmp_path / "r.json").read_text())
+    text = "\n".join(summary_lines(game, back))
+    assert f"ilq: {status.value}" in text and "max |a| none (non-finite)" in text
+    mode = Mode(
+        controls=res.controls,
+        states=x,
+        share=1.0,
+        cost=np.array([np.nan, 1.0]),
+        energy=np.nan,
+        members=np.array([0]),
+        medoid=0,
+        passing=(1,),
+    )
+    batch = SolveResult(
+        **{
+            **res.__dict__,
+            "controls": res.controls[None],
+            "states": x[None],
+            "energy": np.array([np.nan]),
+            "agent_costs": res.agent_costs[None],
+            "status": np.array([status], dtype=object),
+            "iterations": np.array([2]),
+            "energy_history": res.energy_history[:, None],
+            "grad_norm": np.array([np.nan]),
+        }
+    )
+    for modes in ([mode], []):
+        mm = MultiModalResult(modes, np.zeros(1, int), np.ones(1, bool), batch, res.controls, 0.1)
+        listed = modes_dict(game, mm)
+        back = json.loads(write_result({**data, "modes": listed}, tmp_path / "m.json").read_text())
+        lines = "\n".join(mode_lines(game, back["modes"], 1, batch.message))
+        assert f"1 {status.value}" in lines
+        assert ("energy none (non-finite)" in lines) if modes else ("no mode" in lines)
+        plot_modes(game, modes, p, tmp_path / "m.png", title="E = nan")
+        assert (tmp_path / "m.png").read_bytes()[:8] == PNG
+
+
+def test_ilq_from_the_command_line_file_options_and_stall(capsys, tmp_path):
+    """`solver.ilq` options in the file reach the solver; a trust region no step fits in
+    makes the solve 'stalled' (exit 3) after the file is written; a bad option is one line,
+    exit 2."""
+    d = crossing_dict(solver={"ilq": {"max_state_step": 1e-12}})
+    game_file = tmp_path / "g.yaml"
+    game_file.write_text(yaml.safe_dump(d))
+    out = tmp_path / "r.json"
+    rc, stdout, err = run(capsys, "solve", game_file, "--solver", "ilq", "--out", out)
+    assert rc == EXIT_STALLED, err
+    data = json.loads(out.read_text())
+    # no step fits: regularization climbs until max |a| is tiny only because of it
+    assert data["status"] == "stalled" and data["stop"] in ("regularized_only", "line_search")
+    assert data["feedback_residual"] > 1e-5  # at the requested regularization
+    assert data["options"]["max_state_step"] == 1e-12 and data["certificate"] is None
+    assert "feedback Nash residual" in stdout and "Traceback" not in err
+    d["solver"] = {"ilq": {"max_state_step": 1.0, "tol": -1}}
+    game_file.write_text(yaml.safe_dump(d))
+    rc, _, err = run(capsys, "solve", game_file, "--solver", "ilq")
+    assert rc == 2 and "solver.ilq.tol" in err and len(err.strip().splitlines()) == 1
+
+
+def test_modes_from_the_command_line(capsys, tmp_path):
+    """`epo solve --modes N`: modes with shares printed, written and plotted; every solve
+    dropped gives an empty list, the file and exit 1; IPOPT is refused (exit 2)."""
+    f = example_path("crossing2")
+    out, png = tmp_path / "m.json", tmp_path / "m.png"
+    rc, stdout, err = run(
+        capsys, "solve", f, "--solver", "ilq", "--modes", 6, "--out", out, "--plot", png
+    )
+    assert rc == 0, err
+    data = json.loads(out.read_text())
+    shares = [m["share"] for m in data["modes"]]
+    assert data["samples"] == 6 and len(shares) >= 1
+    assert abs(sum(shares) - 1) < 1e-12 and shares == sorted(shares, reverse=True)
+    assert sum(len(m["members"]) for m in data["modes"]) <= 6
+    assert data["status"] == "converged" and "mode 0: share" in stdout
+    assert png.read_bytes()[:8] == PNG
+    rc, stdout, err = run(capsys, "solve", f, "--solver", "lm", "--modes", 3, "--steps", 0,
+                          "--out", out)  # fmt: skip
+    assert rc == EXIT_FAILED and "no mode" in err
+    data = json.loads(out.read_text())
+    assert data["modes"] == [] and data["status"] == "max_iter"
+    rc, _, err = run(capsys, "solve", f, "--solver", "ipopt", "--modes", 3)
+    assert rc == 2 and "--modes" in err and "Traceback" not in err
+
+
+def test_lm_polish_turns_a_tight_ftol_stall_into_converged(crossing):
+    """Asked for a tight first-order test (ctol 1e-12), LM stops by ftol with |grad| ~ 2e-7
+    > gtol: 'stalled'. With polish=3, exact-Hessian Newton steps bring |grad| below gtol
+    (status 'converged', stop 'polish'), at IPOPT's solution (an independent solver)."""
+    game, p = crossing.game, crossing.params
+    tight = solve_lm(game, p, options={"ctol": 1e-12})
+    assert tight.status is Status.STALLED and tight.info["stop"] == "ftol"
+    assert tight.grad_norm > LMOptions().gtol
+    res = solve_lm(game, p, options={"ctol": 1e-12, "polish": 3})
+    assert res.status is Status.CONVERGED and res.info["stop"] == "polish"
+    grad = np.abs(np.asarray(game.function("gradient")(res.controls, p))).max()
+    assert grad <= LMOptions().gtol and res.grad_norm <= LMOptions().gtol
+    ip = solve_ipopt(game, p)
+    np.testing.assert_allclose(res.controls, ip.controls, atol=1e-6)
+    assert res.energy <= tight.energy + 1e-12
+    with pytest.raises(SpecError, match="lm.polish"):
+        LMOptions(polish=-1)

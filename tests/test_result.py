@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from solvers.ilq import solve_ilq
 from solvers.ipopt import solve_ipopt
 from solvers.lm import solve_lm
 from solvers.result import SolveResult, Status
@@ -96,11 +97,20 @@ def test_summaries():
     assert "energy 1," in s1 and "4 iterations" in s1
 
 
-@pytest.mark.parametrize("solve", [solve_lm, solve_ipopt])
+@pytest.mark.parametrize("solve", [solve_lm, solve_ipopt, solve_ilq])
 def test_solver_results_are_json_serializable(solve):
+    """Every solver's result survives strict JSON (no NaN/inf tokens) with its numbers."""
     g = crossing_game(K=5)
     res = solve(g, g.default_params())
-    json.dumps(res.to_dict())
+    assert res.status.ok and np.isfinite(res.energy)
+    back = json.loads(json.dumps(res.to_dict(), allow_nan=False))
+    assert back["solver"] == res.solver and back["status"] == res.status.value
+    assert back["message"] == res.message and back["iterations"] == int(res.iterations)
+    np.testing.assert_array_equal(np.array(back["controls"]), res.controls)
+    np.testing.assert_array_equal(np.array(back["states"]), res.states)
+    np.testing.assert_array_equal(np.array(back["agent_costs"]), res.agent_costs)
+    np.testing.assert_array_equal(np.array(back["energy_history"]), res.energy_history)
+    assert back["energy"] == float(res.energy)
 
 
 @pytest.mark.parametrize("solve", [solve_lm, solve_ipopt])

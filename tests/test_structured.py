@@ -21,7 +21,8 @@ from epo_casadi import (
     GameSpec,
     PotentialGame,
 )
-from solvers.lm import DenseGN, LMOptions, _merge, solve_lm
+from solvers.lm import DenseGN, Linearization, LMOptions, _merge, solve_lm
+from solvers.result import Status
 from solvers.structured import StructuredGN, StructuredLinearization, stage_layout
 from tests.helpers import crossing_game
 
@@ -227,22 +228,106 @@ def test_arbitrary_rhs_and_damping_cache(case):
     assert np.max(np.abs(res)) <= 1e-9 * np.max(np.abs(V))
 
 
+class _Spy:
+    """Wraps a backend and counts the calls that reach it (which backend really ran)."""
+
+    def __init__(self, backend):
+        self.backend, self.calls = backend, {"linearize": 0, "solve": 0, "energy": 0}
+
+    def linearize(self, U, P):
+        self.calls["linearize"] += 1
+        return self.backend.linearize(U, P)
+
+    def solve(self, lin, damping, rhs, ellipsoidal=False):
+        self.calls["solve"] += 1
+        if isinstance(self.backend, StructuredGN):  # the Riccati path, not a dense fallback
+            assert isinstance(lin, StructuredLinearization)
+        return self.backend.solve(lin, damping, rhs, ellipsoidal)
+
+    def energy(self, U, P):
+        self.calls["energy"] += 1
+        return self.backend.energy(U, P)
+
+
 @pytest.mark.parametrize(
     "opts",
     [LMOptions(steps=15), LMOptions.paper(), LMOptions(steps=10, ellipsoidal=True)],
     ids=["adaptive", "paper", "ellipsoidal"],
 )
 def test_solve_lm_backends_agree(opts):
+    from solvers.lm import make_backend
+
     game = _two_agent_game("unicycle", COUPLED, K=20)
-    assert StructuredGN(game, threads=1).fallback is None
     _, P, _ = _batch(game, B=3, seed=4)
-    rd = solve_lm(game, P, options=opts)
-    rs = solve_lm(game, P, options=LMOptions(**{**opts.__dict__, "backend": "structured"}))
+    runs = {}
+    for name, cls in (("dense", DenseGN), ("structured", StructuredGN)):
+        o = LMOptions(**{**opts.__dict__, "backend": name})
+        be = make_backend(game, o)
+        assert type(be) is cls  # options.backend picks the backend
+        assert getattr(be, "fallback", None) is None
+        spy = _Spy(be)
+        runs[name] = solve_lm(game, P, options=o, backend=spy)
+        assert spy.calls["linearize"] >= 2 and spy.calls["solve"] >= 2, name
+        plain = solve_lm(game, P, options=o)  # the backend options name: the same numbers
+        np.testing.assert_array_equal(plain.controls, runs[name].controls)
+    rd, rs = runs["dense"], runs["structured"]
     _close(rs.controls, rd.controls)
     _close(rs.energy, rd.energy)
     np.testing.assert_array_equal(rs.iterations, rd.iterations)
     assert list(rs.status) == list(rd.status)
-    assert np.all(rs.energy < rs.energy_history[0])  # the solve did something
+    assert np.all(rs.energy < rs.energy_history[0] - 1e-3)  # the solve did something
+
+
+def _singular_batch():
+    """A dense Linearization of 3 problems; problem 1 has a zero column in J (singular J'J)."""
+    rng = np.random.default_rng(7)
+    B, n_r, n_u = 3, 7, 4
+    J = rng.normal(size=(B, n_r, n_u))
+    J[1, :, 2] = 0.0
+    r = rng.normal(size=(B, n_r))
+    g = np.einsum("bij,bi->bj", J, r)
+    lin = Linearization(r, J, 0.5 * (r * r).sum(1), g, J.transpose(0, 2, 1) @ J)
+    return lin, rng.normal(size=(B, n_u))
+
+
+def test_dense_solve_falls_back_per_problem_when_one_is_singular():
+    lin, rhs = _singular_batch()
+    damping = np.array([0.5, 0.0, 0.0])  # problem 1: J'J + 0 I is exactly singular
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(lin.JtJ + damping[:, None, None] * np.eye(4))  # the batch fails
+    x = DenseGN.solve(lin, damping, rhs)
+    assert np.isnan(x[1]).all()  # the singular problem is marked, not solved
+    for b in (0, 2):  # the others: as solved alone (independent reference: lstsq)
+        A = lin.JtJ[b] + damping[b] * np.eye(4)
+        ref = np.linalg.lstsq(A, rhs[b], rcond=None)[0]
+        np.testing.assert_allclose(x[b], ref, rtol=1e-10, atol=1e-12)
+        assert np.abs(x[b]).max() > 1e-2
+    ell = DenseGN.solve(lin, np.array([0.5, 0.5, 0.5]), rhs, ellipsoidal=True)
+    # ellipsoidal: diag(J'J) is 0 in the zero column, clamped to 1e-12: still solvable
+    A1 = lin.JtJ[1] + 0.5 * np.diag(np.maximum(np.diag(lin.JtJ[1]), 1e-12))
+    np.testing.assert_allclose(ell[1], np.linalg.solve(A1, rhs[1]), rtol=1e-6)
+
+
+@pytest.mark.parametrize("backend", ["dense", "structured"])
+def test_solve_lm_with_a_singular_problem_finishes_the_others(backend):
+    """solve_lm with zero damping: a problem whose J'J is exactly
+    singular is marked non-finite; the other converges as when solved alone.
+
+    Problem 1 keeps only the goal term: the last stage's controls then do not move the final
+    position (explicit Euler), so their columns of J are exactly zero."""
+    game = _two_agent_game("unicycle", ["goal", "acceleration", "turn_rate"], K=8, pair=False)
+    P = np.tile(game.default_params(), (2, 1))
+    for name in ("w.a.acceleration", "w.a.turn_rate", "w.b.acceleration", "w.b.turn_rate"):
+        P[1, game.params[name].start] = 0.0
+    J = DenseGN(game).linearize(np.zeros((2, game.n_u)), P).J
+    assert np.any(np.all(J[1] == 0, axis=0)) and not np.any(np.all(J[0] == 0, axis=0))
+    opts = LMOptions(backend=backend, damping=0.0, min_damping=0.0, steps=30)
+    res = solve_lm(game, P, options=opts)
+    assert res.status[1] is Status.NONFINITE
+    np.testing.assert_array_equal(res.controls[1], 0.0)  # frozen at its start
+    alone = solve_lm(game, P[0], options=opts)
+    assert res.status[0] is alone.status is Status.CONVERGED
+    np.testing.assert_allclose(res.controls[0], alone.controls, rtol=0, atol=1e-12)
 
 
 def test_merge_of_frozen_problems_still_solves():
@@ -277,3 +362,19 @@ def test_bad_rhs_shape_is_an_error():
     lin = sg.linearize(U, P)
     with pytest.raises(ValueError, match="rhs"):
         sg.solve(lin, lam, np.zeros((2, game.n_u + 1)))
+
+
+def test_fallback_decision_at_the_crossover():
+    """The backend falls back to dense exactly where the dense solve is cheaper: for this
+    2-agent unicycle game (state 8, controls 4, no lags) the flop counts of the stage
+    recursion, (K+1)(4 nz^2 d + 2 d^3) with d = 12, and of the dense solve,
+    n_r n_u^2 + n_u^3 / 3, cross between K = 7 and K = 8."""
+    feats = ["goal", "velocity", "acceleration", "turn_rate"]
+    for K, falls_back in ((7, True), (8, False)):
+        game = _two_agent_game("unicycle", feats, K=K)
+        L = stage_layout(game)
+        assert (L.nz, L.m) == (8, 4)
+        riccati = (K + 1) * (4 * 8**2 * 12 + 2 * 12**3)  # 6528 flops per stage
+        dense = game.n_r * game.n_u**2 + game.n_u**3 / 3
+        assert (riccati > dense) == falls_back
+        assert (StructuredGN(game, threads=1).fallback is not None) == falls_back

@@ -1,21 +1,41 @@
-"""``epo inspect GAME.yaml``: the energy terms of a game file, the Jacobian's sparsity,
-and (with ``--at result.json``) where the energy of a solution goes."""
+"""``epo inspect GAME.yaml``: what the game is made of, for a control engineer.
+
+Prints the energy convention, the dynamics, the parameter vector with values, every
+energy term with its formula, the Jacobian and Gauss-Newton Hessian sparsity (text spy
+pictures with a legend) and, with a solution (``--solve``, or ``--result`` / ``--at`` a
+result file of ``epo solve``), the energy per term, when each term is active, the agent
+costs, and (``--plot``) each term's value and every agent's states and controls over time.
+``--json`` prints the same content as one JSON object (schema ``epo-inspect/1``,
+docs/gamefiles.md).
+"""
 
 from __future__ import annotations
 
+import json
+import sys
 from pathlib import Path
 
 import click
+import numpy as np
 
 
 @click.command("inspect")
 @click.argument("game_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
+    "--result",
     "--at",
     "at",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="A result file of 'epo solve': also print the energy per term and the agent costs there.",
+    help="A result file of 'epo solve': inspect that solution (energy per term over time, "
+    "agent costs, states and controls).",
+)
+@click.option(
+    "--solve",
+    "solve",
+    is_flag=True,
+    default=False,
+    help="Solve the game with LM (the file's options) and inspect the solution.",
 )
 @click.option(
     "--set",
@@ -28,57 +48,102 @@ import click
     "--top",
     type=click.IntRange(min=1),
     default=None,
-    help="With --at: show only the TOP largest terms.",
+    help="With a solution: show only the TOP largest terms.",
 )
 @click.option(
     "--spy/--no-spy",
     default=True,
     show_default=True,
-    help="Print a text picture of which terms touch which agents' controls.",
+    help="Print text pictures of the Jacobian and Hessian sparsity.",
+)
+@click.option(
+    "--hessian/--no-hessian",
+    default=True,
+    show_default=True,
+    help="Also find the Gauss-Newton Hessian pattern J^T J.",
 )
 @click.option(
     "--spy-png",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Write a spy plot of the Jacobian dr/du (PNG) here.",
+    help="Write spy images of J = dr/du (rows named by term) and of J^T J (PNG) here.",
+)
+@click.option(
+    "--plot",
+    "plot",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="With a solution: write each term's value and the states and controls over time.",
+)
+@click.option(
+    "--json",
+    "as_json",
+    is_flag=True,
+    default=False,
+    help="Print one JSON object (schema epo-inspect/1) instead of the text.",
 )
 def inspect_cmd(
     game_file: Path,
     at: Path | None,
+    solve: bool,
     settings: tuple[str, ...],
     top: int | None,
     spy: bool,
+    hessian: bool,
     spy_png: Path | None,
+    plot: Path | None,
+    as_json: bool,
 ):
-    """List every energy term of GAME_FILE, its Jacobian sparsity and (--at) an energy breakdown."""
-    from epo_casadi.inspect import breakdown_table, jacobian_sparsity, spy_text, term_table
+    """Show every energy term of GAME_FILE with its formula, the dynamics, the parameters,
+    the Jacobian and Hessian sparsity and (--solve or --result) a solution over time."""
+    from epo_casadi.errors import SpecError
+    from epo_casadi.inspect import inspect_report, report_text
+    from scenarios.commands.solve import _jsonable
     from scenarios.gamefile import apply_settings, load_game
 
+    if solve and at is not None:
+        raise SpecError("--solve", "give either --solve or --result/--at, not both")
     gf = load_game(game_file)
     game = gf.game
-    click.echo(f"{game_file}")
-    click.echo(term_table(game))
+    u = None
+    p = gf.params
     if at is not None:
         from scenarios.commands.solve import read_result
 
         u, p = read_result(at, game)
-        p = apply_settings(game, p, settings)
-        click.echo("")
-        click.echo(f"at {at}:")
-        click.echo(breakdown_table(game, u, p, top=top))
-    elif settings:
-        apply_settings(game, gf.params, settings)  # validate; nothing else depends on p here
-    click.echo("")
-    if spy:
-        click.echo(spy_text(game))
-    else:
-        sp = jacobian_sparsity(game)
-        click.echo(
-            f"J = dr/du: {sp['shape'][0]} x {sp['shape'][1]}, {sp['nnz']} structural nonzeros "
-            f"(density {sp['density']:.3f})"
-        )
-    if spy_png is not None:
-        from scenarios.plotting import plot_sparsity
+    p = apply_settings(game, p, settings)
+    note = None
+    if solve:
+        from solvers import solve_lm
 
-        plot_sparsity(game, spy_png, title=f"{game_file.name}: J = dr/du")
-        click.echo(f"wrote {spy_png}")
+        res = solve_lm(game, p, options=gf.options("lm"))
+        note = f"solved with LM: {res.status.value}, {res.iterations} iterations"
+        u = res.controls if np.all(np.isfinite(res.controls)) else None
+        if u is None:  # every status gets a report: here one without a solution
+            click.echo(f"warning: {note}; the controls are not finite, no solution shown", err=True)
+            if plot is not None:
+                raise SpecError("--plot", f"no finite solution to draw ({res.status.value})")
+    if plot is not None and u is None:
+        raise SpecError("--plot", "needs a solution: add --solve or --result FILE")
+    rep = inspect_report(game, p, u, source=str(game_file), hessian=hessian)
+    if rep["solution"] is not None:
+        rep["solution"]["source"] = str(at) if at is not None else note
+    if as_json:
+        json.dump(_jsonable(rep), sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        click.echo(f"{game_file}")
+        if rep["solution"] is not None:
+            click.echo(f"solution: {rep['solution']['source']}")
+        click.echo(report_text(game, rep, spy=spy, top=top))
+    say = (lambda m: click.echo(m, err=True)) if as_json else click.echo
+    if spy_png is not None:
+        from scenarios.inspect_plots import plot_inspect_sparsity
+
+        plot_inspect_sparsity(game, spy_png)
+        say(f"wrote {spy_png}")
+    if plot is not None:
+        from scenarios.inspect_plots import plot_solution_over_time
+
+        plot_solution_over_time(game, rep, plot)
+        say(f"wrote {plot}")

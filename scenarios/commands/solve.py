@@ -1,10 +1,19 @@
-"""``epo solve GAME.yaml``: solve a game file with LM or IPOPT, certify, write JSON.
+"""``epo solve GAME.yaml``: solve a game file with LM, IPOPT or iLQ, certify, write JSON.
 
 The result file (``--out``) is one JSON object, documented in
 ``docs/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
 (``(K, nu_i)``), ``energy``, ``agent_costs``, the local Nash ``certificate``, ``status``,
 ``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
 ``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
+
+``--solver ilq`` solves for a feedback Nash equilibrium (:mod:`solvers.ilq`); its check is
+the feedback condition ``max |a| <= tol`` (``feedback_residual`` in the file), not the
+open-loop certificate, which is not computed for it. ``--modes N`` runs the multi-modal
+solver (:func:`solvers.multimodal.solve_multimodal`, ``--solver ilq`` or ``lm``) from ``N``
+seeded starts: the file describes the most likely mode's solve and lists every mode
+(``modes``: share, energy, costs, passing sides, member solves, states and controls);
+with no mode left (every solve dropped) the file holds the first sample's solve and an
+empty list, and the exit status is 1.
 
 Exit status of ``epo solve`` (also in ``docs/solvers.md``): 0 converged or stopped at the
 iteration limit (``max_iter``), 3 stalled (the solver could not lower the energy but the
@@ -90,7 +99,9 @@ def _jsonable(v: Any) -> Any:
 
 
 def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, certify: bool = True):
-    """Solve one problem with ``solver`` (``"lm"``/``"ipopt"``); return ``(result, certificate)``."""
+    """Solve one problem with ``solver`` (``"lm"``/``"ipopt"``/``"ilq"``); return
+    ``(result, certificate)``. The open-loop Nash certificate is computed for LM and IPOPT
+    only (iLQ's equilibrium is a feedback one: see :func:`result_dict`)."""
     if solver == "lm":
         from solvers.lm import solve_lm
 
@@ -99,10 +110,15 @@ def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, cer
         from solvers.ipopt import solve_ipopt
 
         res = solve_ipopt(game, p, options=options)
+    elif solver == "ilq":
+        from solvers.ilq import solve_ilq
+
+        res = solve_ilq(game, p, options=options)
     else:
-        raise SpecError("--solver", f"expected 'lm' or 'ipopt', got {solver!r}")
+        raise SpecError("--solver", f"expected 'lm', 'ipopt' or 'ilq', got {solver!r}")
     cert = None
-    if certify and res.status is not Status.NONFINITE:  # no certificate of NaN/inf values
+    # no certificate of NaN/inf values, nor an open-loop one of a feedback equilibrium
+    if certify and res.status is not Status.NONFINITE and solver != "ilq":
         from solvers.nash import nash_certificate
 
         cert = nash_certificate(game, res.controls, p)
@@ -140,9 +156,35 @@ def result_dict(
             "params": blocks,
             "energy_history": energy_history(res),
             "certificate": cert.to_dict() if cert is not None else None,
+            "stop": res.info.get("stop"),
+            "feedback_residual": res.info.get("stationarity") if res.solver == "ilq" else None,
             "options": res.info.get("options"),
         }
     )
+
+
+def modes_dict(game: PotentialGame, mm) -> list[dict]:
+    """JSON-ready list of the modes of a :class:`solvers.multimodal.MultiModalResult`."""
+    names = game.agent_names
+    out = []
+    for m in mm.modes:
+        X = game.split_states(m.states)
+        U = game.split_controls(m.controls)
+        out.append(
+            _jsonable(
+                {
+                    "share": float(m.share),
+                    "energy": float(m.energy),
+                    "agent_costs": {a: float(c) for a, c in zip(names, m.cost, strict=True)},
+                    "passing": list(m.passing),
+                    "medoid": int(m.medoid),
+                    "members": [int(i) for i in m.members],
+                    "states": {a: X[i] for i, a in enumerate(names)},
+                    "controls": {a: U[i] for i, a in enumerate(names)},
+                }
+            )
+        )
+    return out
 
 
 def energy_history(res) -> np.ndarray:
@@ -243,6 +285,27 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
         )
     elif data.get("status") == Status.NONFINITE.value:
         lines.append("  Nash certificate: not computed (NaN or inf in the solution)")
+    if data.get("solver") == "ilq":
+        lines.append(
+            f"  feedback Nash residual max |a| {fmt_number(data.get('feedback_residual'), '.3g')}"
+            " (open-loop certificate not computed for a feedback equilibrium)"
+        )
+    return lines
+
+
+def mode_lines(game: PotentialGame, modes: list[dict], n_samples: int, statuses: str) -> list[str]:
+    """Printed summary of the modes of a multi-modal solve; total over every case."""
+    kept = sum(len(m["members"]) for m in modes)
+    lines = [f"  {len(modes)} mode(s) from {kept}/{n_samples} kept solves (solves: {statuses})"]
+    for i, m in enumerate(modes):
+        costs = ", ".join(f"{a} {fmt_number(c, '.4g')}" for a, c in m["agent_costs"].items())
+        lines.append(
+            f"  mode {i}: share {fmt_number(m['share'], '.2f')}, energy "
+            f"{fmt_number(m['energy'], '.6g')}, {len(m['members'])} solves, passing "
+            f"{tuple(m['passing'])}; costs {costs}"
+        )
+    if not modes:
+        lines.append("  no mode: every solve was dropped (not converged or colliding)")
     return lines
 
 
@@ -250,16 +313,30 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
 @click.argument("game_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--solver",
-    type=click.Choice(["lm", "ipopt"]),
+    type=click.Choice(["lm", "ipopt", "ilq"]),
     default="lm",
     show_default=True,
-    help="Levenberg-Marquardt or IPOPT.",
+    help="Levenberg-Marquardt, IPOPT or the iLQ feedback Nash solver.",
 )
 @click.option(
     "--steps",
     type=click.IntRange(min=0, max=MAX_STEPS),
     default=None,
-    help="Iteration limit (LM steps / IPOPT max_iter); overrides the file's solver options.",
+    help="Iteration limit (LM steps / IPOPT, iLQ max_iter); overrides the file's solver options.",
+)
+@click.option(
+    "--modes",
+    type=click.IntRange(min=1, max=10_000),
+    default=None,
+    metavar="N",
+    help="Multi-modal solve from N seeded starts (--solver ilq or lm): print and plot the modes.",
+)
+@click.option(
+    "--seed",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Seed of the sampled starts of --modes.",
 )
 @click.option(
     "--set",
@@ -294,6 +371,8 @@ def solve(
     out: Path | None,
     plot: Path | None,
     certificate: bool,
+    modes: int | None,
+    seed: int,
 ):
     """Solve GAME_FILE (YAML or JSON game file) and print a short summary."""
     from scenarios.gamefile import apply_settings, load_game
@@ -304,6 +383,10 @@ def solve(
     p = apply_settings(game, gf.params, settings)
     over = {} if steps is None else {("steps" if solver == "lm" else "max_iter"): steps}
     opts = gf.options(solver, **over)
+    if modes is not None:
+        if solver == "ipopt":
+            raise SpecError("--modes", "expected --solver ilq or lm (IPOPT has no batch mode)")
+        return _solve_modes(game_file, game, p, solver, opts, modes, seed, out, plot, t0)
     res, cert = run_solve(game, p, solver, opts, certify=certificate)
     data = result_dict(game, p, res, cert, source=str(game_file))
     click.echo(
@@ -322,12 +405,49 @@ def solve(
             res.states,
             p,
             plot,
-            title=f"{game_file.name}: {solver}, E = {float(res.energy):.4g}",
+            title=f"{game_file.name}: {solver}, E = {fmt_number(res.energy, '.4g')}",
         )
         click.echo(f"wrote {plot}")
     click.echo(f"total {time.perf_counter() - t0:.2f} s")
-    code = exit_code(res.status)
+    _exit(res.status, res.message)
+
+
+def _exit(status: Status, message: str) -> None:
+    code = exit_code(status)
     if code == EXIT_STALLED:
-        raise SolveExit(f"the solve stalled (exit {code}): {res.message}", code)
+        raise SolveExit(f"the solve stalled (exit {code}): {message}", code)
     if code:
-        raise SolveExit(f"the solve did not give a usable solution: {res.message}", code)
+        raise SolveExit(f"the solve did not give a usable solution: {message}", code)
+
+
+def _solve_modes(game_file, game, p, solver, opts, n, seed, out, plot, t0) -> None:
+    """``epo solve --modes N``: multi-modal solve, printed, written and plotted."""
+    from solvers.multimodal import solve_multimodal
+
+    mm = solve_multimodal(game, p, n_samples=n, seed=seed, solver=solver, options=opts)
+    j = mm.modes[0].medoid if mm.modes else 0
+    top = mm.results[j]
+    data = result_dict(game, p, top, None, source=str(game_file))
+    listed = modes_dict(game, mm)
+    data["modes"] = listed
+    data["samples"] = n
+    data["seed"] = seed
+    data["solves"] = mm.results.message
+    click.echo(
+        f"{game_file}: {game.N} agents, K = {game.K}, n_u = {game.n_u}, {solver} from {n} "
+        f"seeded starts (seed {seed})"
+    )
+    for line in mode_lines(game, listed, n, mm.results.message):
+        click.echo(line)
+    if out is not None:
+        write_result(data, out)
+        click.echo(f"wrote {out}")
+    if plot is not None:
+        from scenarios.plotting import plot_modes
+
+        plot_modes(game, mm.modes, p, plot, title=f"{game_file.name}: {solver}, {n} starts")
+        click.echo(f"wrote {plot}")
+    click.echo(f"total {time.perf_counter() - t0:.2f} s")
+    if not mm.modes:
+        raise SolveExit(f"no mode: all {n} solves were dropped ({mm.results.message})", EXIT_FAILED)
+    _exit(top.status, top.message)
