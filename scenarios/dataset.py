@@ -18,7 +18,7 @@ Work units and seeds
 Shards
     Per split, the units (sorted by index) are grouped ``units_per_shard`` at a time; a
     shard holds the samples of its units in unit order, every schema field as one HDF5
-    dataset of shape ``(n, *field_shape)`` (chunked along the first axis, lzf + shuffle
+    dataset of shape ``(n, *field_shape)`` (chunked along the first axis, deflate + shuffle
     filters). Attributes: ``format_version``, ``scenario``, ``split``, ``units``.
     HDF5 files are written without timestamps, so equal content gives equal bytes and
     equal sha256 checksums.
@@ -320,7 +320,12 @@ def write_shard(
                     k,
                     data=a,
                     chunks=(min(n, CHUNK_ROWS), *fs.shape),
-                    compression="lzf",
+                    # deflate, not lzf: liblzf leaves its hash table uninitialized, so
+                    # the same arrays can compress to different bytes (shard checksums
+                    # would then differ between engines and reruns); deflate is
+                    # deterministic and readers are unchanged.
+                    compression="gzip",
+                    compression_opts=4,
                     shuffle=True,
                 )
             else:
