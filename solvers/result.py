@@ -57,8 +57,9 @@ _MESSAGES = {
     Status.INFEASIBLE: "stopped: the constraints could not be satisfied",
     Status.FAILED: "failed: the solver reported an error",
     Status.STALLED: (
-        "stalled: the solver could not lower the energy any further (damping at its cap or a "
-        "negligible decrease) but the first-order test fails; not a stationary point"
+        "stalled: the solver could make no further progress (damping or regularization at "
+        "its cap, or a negligible decrease of its merit: the energy for LM, the feedback "
+        "residual for iLQ) but the first-order test fails; not a stationary point"
     ),
 }
 

@@ -16,7 +16,7 @@ with no mode left (every solve dropped) the file holds the first sample's solve 
 empty list, and the exit status is 1.
 
 Exit status of ``epo solve`` (also in ``docs/solvers.md``): 0 converged or stopped at the
-iteration limit (``max_iter``), 3 stalled (the solver could not lower the energy but the
+iteration limit (``max_iter``), 3 stalled (the solver could make no further progress but the
 iterate is not stationary), 1 no usable solution (``nonfinite``, ``infeasible``,
 ``failed``), 2 bad input or an output that cannot be written. The result file and the
 figure are written (atomically) before a non-zero exit, whatever the status.
@@ -121,7 +121,7 @@ def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, cer
     if certify and res.status is not Status.NONFINITE and solver != "ilq":
         from solvers.nash import nash_certificate
 
-        cert = nash_certificate(game, res.controls, p)
+        cert = nash_certificate(game, p=p, u=res.controls)
     return res, cert
 
 
