@@ -9,7 +9,8 @@ contract in :mod:`epo_casadi.game`) and the named functions ``term_energies``,
   feature, weight parameter and its default value, time steps, residual rows;
 * :func:`energy_breakdown` / :func:`agent_breakdown` / :func:`breakdown_table`: per-term
   energy ``e_t = 1/2 ||r_t||^2`` and its share of ``E``, and per-agent costs ``C_i`` split
-  into own and pair parts, at a joint strategy ``u`` and parameters ``p``;
+  into own and pair parts, at parameters ``p`` and a joint strategy ``u`` (arguments
+  ``(game, p, u)``, the solvers' order; see :mod:`epo_casadi.arg_order`);
 * :func:`jacobian_sparsity` / :func:`jacobian_pattern` / :func:`spy_text`: the
   structural nonzeros of ``J = dr/du`` (``n_r x n_u``), in total, per term and per agent,
   and a text picture of which terms touch which agents' controls;
@@ -29,6 +30,7 @@ from collections.abc import Sequence
 import casadi as ca
 import numpy as np
 
+from .arg_order import p_u_order
 from .errors import SpecError
 from .game import PotentialGame, Term
 
@@ -165,18 +167,20 @@ def term_table(game: PotentialGame) -> str:
     return "\n".join([title, *_table(header, body, right)])
 
 
-def _eval(game: PotentialGame, name: str, u, p) -> np.ndarray:
+def _eval(game: PotentialGame, name: str, p, u) -> np.ndarray:
     U, P = game.check_inputs(u, p)
     if U.shape[0] != 1:
         raise SpecError("u/p", f"expected one problem, got a batch of {U.shape[0]}")
     return np.asarray(game.function(name)(U[0], P[0]), dtype=float).reshape(-1)
 
 
-def energy_breakdown(game: PotentialGame, u: np.ndarray, p: np.ndarray) -> list[dict]:
-    """Per-term energy at ``(u, p)``: the :func:`term_rows` fields plus ``energy``
-    (``1/2 ||r_t||^2``) and ``share`` (``energy / E``; 0 when ``E = 0``)."""
+@p_u_order
+def energy_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
+    """Per-term energy at parameters ``p`` and strategy ``u``: the :func:`term_rows` fields
+    plus ``energy`` (``1/2 ||r_t||^2``) and ``share`` (``energy / E``; 0 when ``E = 0``).
+    The old order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`)."""
     game = _check_game(game)
-    e = _eval(game, "term_energies", u, p)
+    e = _eval(game, "term_energies", p, u)
     total = float(e.sum())
     out = []
     for row, et in zip(term_rows(game), e, strict=True):
@@ -186,15 +190,17 @@ def energy_breakdown(game: PotentialGame, u: np.ndarray, p: np.ndarray) -> list[
     return out
 
 
-def agent_breakdown(game: PotentialGame, u: np.ndarray, p: np.ndarray) -> list[dict]:
-    """Per-agent cost ``C_i`` at ``(u, p)``, split into ``own`` and ``pair`` energy.
+@p_u_order
+def agent_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
+    """Per-agent cost ``C_i`` at ``(p, u)``, split into ``own`` and ``pair`` energy.
 
     ``cost`` comes from the game's ``agent_costs`` function, ``own``/``pair`` from
-    ``term_energies`` (``cost = own + pair``; pair terms count for both agents).
+    ``term_energies`` (``cost = own + pair``; pair terms count for both agents). The old
+    order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`).
     """
     game = _check_game(game)
-    e = _eval(game, "term_energies", u, p)
-    C = _eval(game, "agent_costs", u, p)
+    e = _eval(game, "term_energies", p, u)
+    C = _eval(game, "agent_costs", p, u)
     out = []
     for i, a in enumerate(game.agent_names):
         own = sum(float(e[t.index]) for t in game.terms if t.kind == "own" and a in t.agents)
@@ -203,12 +209,13 @@ def agent_breakdown(game: PotentialGame, u: np.ndarray, p: np.ndarray) -> list[d
     return out
 
 
+@p_u_order
 def breakdown_table(
-    game: PotentialGame, u: np.ndarray, p: np.ndarray, top: int | None = None
+    game: PotentialGame, p: np.ndarray, u: np.ndarray, top: int | None = None
 ) -> str:
     """Text tables: per-term energy and share (largest first; ``top`` rows if given),
-    then per-agent costs."""
-    rows = energy_breakdown(game, u, p)
+    then per-agent costs. The old order ``(game, u, p)`` warns."""
+    rows = energy_breakdown(game, p=p, u=u)
     total = sum(r["energy"] for r in rows)
     order = sorted(rows, key=lambda r: -r["energy"])
     shown = order if top is None else order[:top]
@@ -236,7 +243,7 @@ def breakdown_table(
         lines.append(f"... {len(rows) - len(shown)} more terms with {rest:.6g} in total")
     lines.append("")
     lines.append("agent costs C_i = own + pair (pair terms count for both agents)")
-    ab = agent_breakdown(game, u, p)
+    ab = agent_breakdown(game, p=p, u=u)
     lines += _table(
         ["agent", "C_i", "own", "pair"],
         [[a["agent"], f"{a['cost']:.6g}", f"{a['own']:.6g}", f"{a['pair']:.6g}"] for a in ab],
@@ -491,15 +498,62 @@ def term_formula(game: PotentialGame, t: Term) -> dict:
     }
 
 
+def _integrator(model) -> str:
+    integ = getattr(model, "integrator", None)
+    if integ is None and type(model).__module__ == "epo_casadi.dynamics":
+        integ = "explicit Euler"
+    return str(integ) if integ is not None else "not declared"
+
+
+def _coupled_summary(game: PotentialGame, coupling) -> dict:
+    """One entry of :func:`dynamics_summary` for a :class:`~epo_casadi.game.Coupling`:
+    the joint model's update of every member's states, symbols named ``agent.state``."""
+    members = [game.agents[game.agent_names.index(n)] for n in coupling.agents]
+    states = [f"{a.name}.{s}" for a in members for s in a.dynamics.state_names]
+    controls = [f"{a.name}.{c}" for a in members for c in a.dynamics.control_names]
+    xs = [
+        ca.vertcat(*[ca.SX.sym(f"{a.name}.{s}") for s in a.dynamics.state_names]) for a in members
+    ]
+    us = [
+        ca.vertcat(*[ca.SX.sym(f"{a.name}.{c}") for c in a.dynamics.control_names]) for a in members
+    ]
+    nxt = ca.vertcat(*coupling.model.step(xs, us, game.dt))
+    m = coupling.model
+    return {
+        "model": getattr(m, "name", type(m).__name__),
+        "class": f"{type(m).__module__}.{type(m).__qualname__}",
+        "agents": list(coupling.agents),
+        "states": states,
+        "controls": controls,
+        "integrator": _integrator(m),
+        "dt": game.dt,
+        "update": {n: _pretty(nxt[j]) for j, n in enumerate(states)},
+        "coupled": True,
+        "member_models": [getattr(a.dynamics, "name", type(a.dynamics).__name__) for a in members],
+    }
+
+
 def dynamics_summary(game: PotentialGame) -> list[dict]:
     """The agents' dynamics, one entry per group of agents with equal models: ``model``
     (name), ``class``, ``agents``, ``states``, ``controls``, ``integrator`` (the model's
     ``integrator`` attribute, else ``"not declared"``), ``dt``, ``update`` (state name ->
-    ``x_{k+1}`` with named symbols, from the model's own ``step``)."""
+    ``x_{k+1}`` with named symbols, from the model's own ``step``) and ``coupled``.
+
+    Agents that a :class:`~epo_casadi.game.Coupling` steps together (``GameSpec.couplings``)
+    get one entry per coupling instead, from the joint model's ``step`` (their own models'
+    ``step`` is not used): ``coupled`` is True, states and controls are named
+    ``agent.name`` (members in the coupling's order) and ``member_models`` names each
+    member's own model (which still gives its sizes and state names)."""
     game = _check_game(game)
     groups: list[dict] = []
     seen: dict = {}
+    joint = {n: c for c in game.spec.couplings for n in c.agents}
     for a in game.agents:
+        if a.name in joint:
+            c = joint[a.name]
+            if a.name == c.agents[0]:  # one entry per coupling, where its first member is
+                groups.append(_coupled_summary(game, c))
+            continue
         d = a.dynamics
         try:
             key = d
@@ -513,18 +567,16 @@ def dynamics_summary(game: PotentialGame) -> list[dict]:
         u = ca.vertcat(*[ca.SX.sym(n) for n in d.control_names])
         nxt = d.step(x, u, game.dt)
         update = {n: _pretty(nxt[j]) for j, n in enumerate(d.state_names)}
-        integ = getattr(d, "integrator", None)
-        if integ is None and type(d).__module__ == "epo_casadi.dynamics":
-            integ = "explicit Euler"
         g = {
             "model": getattr(d, "name", type(d).__name__),
             "class": f"{type(d).__module__}.{type(d).__qualname__}",
             "agents": [a.name],
             "states": list(d.state_names),
             "controls": list(d.control_names),
-            "integrator": str(integ) if integ is not None else "not declared",
+            "integrator": _integrator(d),
             "dt": game.dt,
             "update": update,
+            "coupled": False,
         }
         seen[key] = g
         groups.append(g)
@@ -644,12 +696,14 @@ def hessian_spy_text(game: PotentialGame, width: int = 24, H=None) -> str:
     return "\n".join(lines)
 
 
-def term_series(game: PotentialGame, u: np.ndarray, p: np.ndarray) -> list[dict]:
-    """Each term's value over time at ``(u, p)``: ``index``, ``steps`` (the time steps, a
+@p_u_order
+def term_series(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
+    """Each term's value over time at ``(p, u)``: ``index``, ``steps`` (the time steps, a
     list), ``energy`` (per step ``1/2 ||w c_k||^2``; ``None`` when the term's rows do not
-    split evenly over its steps), ``active`` (steps with a nonzero value) and ``total``."""
+    split evenly over its steps), ``active`` (steps with a nonzero value) and ``total``.
+    The old order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`)."""
     game = _check_game(game)
-    r = _eval(game, "residual", u, p)
+    r = _eval(game, "residual", p, u)
     out = []
     for t in game.terms:
         rr = r[t.rows]
@@ -730,10 +784,10 @@ def inspect_report(
     if u is not None:
         U, _ = game.check_inputs(u, p)
         u = U[0]
-        e = _eval(game, "term_energies", u, p)
+        e = _eval(game, "term_energies", p, u)
         total = float(e.sum())
-        series = term_series(game, u, p)
-        x = _eval(game, "rollout", u, p)
+        series = term_series(game, p=p, u=u)
+        x = _eval(game, "rollout", p, u)
         X, Uc = game.split_states(x), game.split_controls(u)
         rep["solution"] = {
             "energy": _finite(total),
@@ -748,7 +802,7 @@ def inspect_report(
                 }
                 for s, et in zip(series, e, strict=True)
             ],
-            "agent_costs": agent_breakdown(game, u, p),
+            "agent_costs": agent_breakdown(game, p=p, u=u),
             "states": {a: X[i].tolist() for i, a in enumerate(game.agent_names)},
             "controls": {a: Uc[i].tolist() for i, a in enumerate(game.agent_names)},
             "state_names": {a.name: list(a.dynamics.state_names) for a in game.agents},
@@ -779,8 +833,9 @@ def report_text(game: PotentialGame, rep: dict, *, spy: bool = True, top: int | 
     for g in rep["dynamics"]:
         ag = g["agents"]
         who = ", ".join(ag) if len(ag) <= 6 else f"{ag[0]}, ..., {ag[-1]} ({len(ag)} agents)"
+        joint = " (coupled: one joint model steps these agents)" if g.get("coupled") else ""
         L.append(
-            f"  {g['model']} [{who}]: states ({', '.join(g['states'])}), controls "
+            f"  {g['model']} [{who}]{joint}: states ({', '.join(g['states'])}), controls "
             f"({', '.join(g['controls'])}), integrator {g['integrator']}, dt = {g['dt']:g} s"
         )
         for s, e in g["update"].items():

@@ -24,7 +24,10 @@ from epo_casadi.errors import EpoError  # noqa: E402
 # name -> "module:attribute" of a click command or group
 COMMANDS: dict[str, tuple[str, str]] = {
     "solve": ("scenarios.commands.solve:solve", "Solve a game file with LM or IPOPT."),
-    "inspect": ("scenarios.commands.inspect:inspect_cmd", "List every energy term of a game file."),
+    "inspect": (
+        "scenarios.commands.inspect:inspect_cmd",
+        "Show term formulas, dynamics, parameters, sparsity (--json).",
+    ),
     "export": (
         "scenarios.commands.export:export_cmd",
         "Export a game's functions as CasADi files or C source.",

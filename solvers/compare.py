@@ -385,7 +385,7 @@ def _check(choice: SolverChoice, game: PotentialGame, p: np.ndarray, res):
         return "feedback", c.ok, float(np.max(c.gain)), time.perf_counter() - t0
     from .nash import nash_certificate
 
-    c = nash_certificate(game, res.controls, p)
+    c = nash_certificate(game, p=p, u=res.controls)
     gap = float(np.max(c.best_response_gap)) if len(c.best_response_gap) else 0.0
     return "open-loop", bool(c.ok), gap, time.perf_counter() - t0
 

@@ -17,9 +17,10 @@ Player costs
 
 One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible)
     1. *Linearize* the joint dynamics, ``dX_{k+1} = A_k dX_k + B_k dU_k`` (block-diagonal
-       per agent), and *quadratize* every player's cost: the exact CasADi gradient of
-       ``C_i`` w.r.t. ``(U_k, X_k)`` and the diagonal stage blocks of a Hessian
-       (``ILQOptions.hessian``):
+       per agent, except where ``GameSpec(couplings=...)`` steps several agents with one
+       joint model, ``PotentialGame.stage_step``), and *quadratize* every player's cost:
+       the exact CasADi gradient of ``C_i`` w.r.t. ``(U_k, X_k)`` and the diagonal stage
+       blocks of a Hessian (``ILQOptions.hessian``):
 
        * ``"exact"``: the exact Hessian of ``C_i`` (any costs);
        * ``"gauss_newton"``: ``J_i'J_i``, ``J_i`` the exact Jacobian of the residual rows of

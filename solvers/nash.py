@@ -50,6 +50,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import casadi as ca
 import numpy as np
 
+from epo_casadi.arg_order import p_u_order
 from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
@@ -212,8 +213,10 @@ class NashChecker:
             )
         return self._br[i]
 
-    def certify(self, u: np.ndarray, p: np.ndarray) -> NashCertificate:
-        """Certificate for one problem: ``u`` ``(n_u,)``, ``p`` ``(n_p,)``.
+    @p_u_order(method=True)
+    def certify(self, p: np.ndarray, u: np.ndarray) -> NashCertificate:
+        """Certificate for one problem: ``p`` ``(n_p,)``, ``u`` ``(n_u,)`` (the order of
+        :func:`nash_certificate`; the old ``(u, p)`` warns).
 
         Non-finite ``u`` or ``p`` give a failing certificate (not an exception): every
         solver status, including ``nonfinite``, has one.
@@ -320,21 +323,25 @@ class NashChecker:
         )
 
 
+@p_u_order
 def nash_certificate(
     game: PotentialGame,
-    u: np.ndarray,
     p: np.ndarray,
+    u: np.ndarray,
     options: NashOptions | dict | None = None,
 ) -> NashCertificate:
-    """Local open-loop Nash certificate of the joint strategy ``u`` (``(n_u,)``) for ``p``.
+    """Local open-loop Nash certificate of the joint strategy ``u`` (``(n_u,)``) for ``p``
+    (``(n_p,)``).
 
-    See the module docstring for what is measured, the tolerances and what "local"
-    means. ``options``: :class:`NashOptions` or a dict of its fields (unknown keys raise
-    :class:`~epo_casadi.errors.SpecError`).
+    Arguments in the solvers' order ``(game, p, u)``; the old order ``(game, u, p)`` still
+    works with a :class:`DeprecationWarning` (:mod:`epo_casadi.arg_order`; keywords
+    ``p=``, ``u=`` are always safe). See the module docstring for what is measured, the
+    tolerances and what "local" means. ``options``: :class:`NashOptions` or a dict of its
+    fields (unknown keys raise :class:`~epo_casadi.errors.SpecError`).
     """
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     t0 = time.perf_counter()
     opts = check_options(NashOptions, options, "nash")
-    cert = game.cached(("nash", opts), lambda: NashChecker(game, opts)).certify(u, p)
+    cert = game.cached(("nash", opts), lambda: NashChecker(game, opts)).certify(p=p, u=u)
     return replace(cert, time_s=time.perf_counter() - t0)  # with the first use's build

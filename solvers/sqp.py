@@ -702,13 +702,13 @@ def _solver_for(game: PotentialGame, opts: SQPOptions) -> SQPSolver:
 
 def solve_sqp(
     game: PotentialGame,
-    params: np.ndarray,
+    p: np.ndarray,
     u0: np.ndarray | None = None,
     options: SQPOptions | dict | None = None,
 ) -> SolveResult:
     """Minimize the potential of ``game`` under hard constraints by Gauss-Newton SQP (OSQP).
 
-    ``params``: ``(n_p,)`` or ``(B, n_p)``; ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if
+    ``p``: ``(n_p,)`` or ``(B, n_p)`` (the same argument name and order as every solver); ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if
     None). ``options``: :class:`SQPOptions` or a dict of its fields (unknown keys raise
     :class:`~epo_casadi.errors.SpecError`). The solver (CasADi functions and the OSQP
     object) is built once per game and constraint structure and reused by later calls,
@@ -717,4 +717,4 @@ def solve_sqp(
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     opts = check_options(SQPOptions, options, "sqp")
-    return _solver_for(game, opts).solve(params, u0, opts)
+    return _solver_for(game, opts).solve(p, u0, opts)

@@ -146,7 +146,7 @@ def test_solve_lm_ipopt_ilq_certify_and_inspect(ext, game):
     np.testing.assert_allclose(lm.controls, ip.controls, atol=1e-4)
     il = solve_ilq(game, p)
     assert np.all(np.isfinite(il.controls)) and il.status.value in ("converged", "max_iter")
-    cert = nash_certificate(game, lm.controls, p)
+    cert = nash_certificate(game, p, lm.controls)
     assert cert.ok, cert.reasons
     # the lane moves the car: a lane at +1 vs at -1 pulls its path up vs down
     up = solve_lm(game, game.default_params(lane__car=1.0))
@@ -159,7 +159,7 @@ def test_solve_lm_ipopt_ilq_certify_and_inspect(ext, game):
     assert any(r["feature"] == "lane_keeping" and r["agents"] == ["car"] for r in rows) or any(
         r["feature"] == "lane_keeping" for r in rows
     )
-    e = {r["feature"]: r for r in ins.energy_breakdown(game, lm.controls, p) if "car" in str(r)}
+    e = {r["feature"]: r for r in ins.energy_breakdown(game, p, lm.controls) if "car" in str(r)}
     assert "lane_keeping" in e
     t = next(t for t in game.terms if t.feature == "lane_keeping")
     formula = ins.term_formula(game, t)

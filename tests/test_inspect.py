@@ -162,7 +162,7 @@ def test_breakdown_sums_to_energy(crossing):
     u = RNG.normal(scale=0.2, size=game.n_u)
     r = np.asarray(game.function("residual")(u, p)).ravel()
     E = 0.5 * float(r @ r)  # independent of term_energies: the stacked residual
-    rows = energy_breakdown(game, u, p)
+    rows = energy_breakdown(game, p, u)
     assert len(rows) == len(game.terms)
     for row, t in zip(rows, game.terms, strict=True):
         np.testing.assert_allclose(
@@ -181,7 +181,7 @@ def test_agent_breakdown_by_hand(crossing):
     u = RNG.normal(scale=0.2, size=game.n_u)
     r = np.asarray(game.function("residual")(u, p)).ravel()
     C = np.asarray(game.function("agent_costs")(u, p)).ravel()
-    for i, row in enumerate(agent_breakdown(game, u, p)):
+    for i, row in enumerate(agent_breakdown(game, p, u)):
         a = game.agent_names[i]
         own = sum(
             0.5 * np.sum(r[t.rows] ** 2) for t in game.terms if t.kind == "own" and t.agents == (a,)
@@ -199,20 +199,20 @@ def test_agent_breakdown_by_hand(crossing):
 def test_breakdown_table_text(crossing):
     game = crossing
     u = RNG.normal(scale=0.2, size=game.n_u)
-    text = breakdown_table(game, u, game.default_params())
+    text = breakdown_table(game, game.default_params(), u)
     E = float(game.function("energy")(u, game.default_params()))
     assert f"energy E = {E:.6g}" in text
     for a in game.agent_names:
         assert any(line.startswith(a + " ") for line in text.splitlines())
-    short = breakdown_table(game, u, game.default_params(), top=3)
+    short = breakdown_table(game, game.default_params(), u, top=3)
     assert f"... {len(game.terms) - 3} more terms" in short
 
 
 def test_breakdown_rejects_bad_inputs(crossing):
     with pytest.raises(SpecError, match="^u: "):
-        energy_breakdown(crossing, np.zeros(3), crossing.default_params())
+        energy_breakdown(crossing, crossing.default_params(), np.zeros(3))
     with pytest.raises(SpecError, match="^u/p: expected one problem"):
-        energy_breakdown(crossing, np.zeros((2, crossing.n_u)), crossing.default_params())
+        energy_breakdown(crossing, crossing.default_params(), np.zeros((2, crossing.n_u)))
     with pytest.raises(SpecError, match="^game: "):
         term_table("not a game")
 
@@ -397,11 +397,11 @@ def test_term_series_and_report(crossing):
     u = RNG.normal(scale=0.2, size=game.n_u)
     e = np.asarray(game.function("term_energies")(u, p)).ravel()
     r = np.asarray(game.function("residual")(u, p)).ravel()
-    for s, t in zip(term_series(game, u, p), game.terms, strict=True):
+    for s, t in zip(term_series(game, p, u), game.terms, strict=True):
         np.testing.assert_allclose(sum(s["energy"]), e[t.index], rtol=1e-12, atol=1e-15)
         rows = r[t.rows].reshape(len(t.steps), -1)
         assert s["active"] == [k for k, row in zip(t.steps, rows, strict=True) if np.any(row)]
-    coll = [s for s, t in zip(term_series(game, u, p), game.terms, strict=True) if t.kind == "pair"]
+    coll = [s for s, t in zip(term_series(game, p, u), game.terms, strict=True) if t.kind == "pair"]
     assert any(0 < len(s["active"]) < len(s["steps"]) for s in coll)  # active on some steps
     rep = inspect_report(game, p, u)
     text = report_text(game, rep)
@@ -445,3 +445,71 @@ def test_cli_inspect_json_matches_text(tmp_path):
     assert f"{rep['hessian']['nnz']} structural nonzeros" in txt
     X = np.asarray(rep["solution"]["states"]["a0"])
     assert X.shape == (31, 4)
+
+
+# coupled dynamics (GameSpec.couplings): the summary shows the joint model's update
+# --------------------------------------------------------------------------------------
+def test_dynamics_summary_shows_the_joint_model_of_coupled_agents():
+    """Reference: the game's own stage map (``stage_step``) at a random point, against the
+    summary's update expressions evaluated as Python; the coupling term is non-zero there,
+    so the members' own steps would give other values."""
+    import json
+    from dataclasses import dataclass
+    from types import SimpleNamespace
+
+    import casadi as ca
+
+    from epo_casadi import Acceleration, Coupling, Goal, JointDynamics
+    from epo_casadi.inspect import dynamics_summary, inspect_report, report_text
+
+    @dataclass(frozen=True)
+    class Tow(JointDynamics):
+        name = "tow"
+        k: float = 0.8
+
+        def step(self, xs, us, dt):
+            (x1, x2), (u1, u2) = xs, us
+            v2 = x2[2:4] + dt * u2 + self.k * dt * (x1[2:4] - x2[2:4])
+            return [
+                ca.vertcat(x1[0:2] + dt * x1[2:4], x1[2:4] + dt * u1),
+                ca.vertcat(x2[0:2] + dt * x2[2:4], v2),
+            ]
+
+    f = [Goal(weight=1.0), Acceleration()]
+    agents = [
+        AgentSpec("ped", "unicycle", f, x0=[0, 1, 1, 0], goal=[0, 0]),
+        AgentSpec("truck", "double_integrator", f, x0=[0, 0, 1, 0], goal=[1, 0]),
+        AgentSpec("trailer", "double_integrator", f, x0=[-1, 0, 1, 0], goal=[0, 0]),
+    ]
+    coupling = Coupling(("truck", "trailer"), Tow())
+    g = PotentialGame(GameSpec(agents, horizon=3, dt=0.5, couplings=[coupling]))
+    groups = dynamics_summary(g)
+    assert [(d["model"], d["agents"], d["coupled"]) for d in groups] == [
+        ("unicycle", ["ped"], False),
+        ("tow", ["truck", "trailer"], True),
+    ]
+    tow = groups[1]
+    assert tow["member_models"] == ["double_integrator", "double_integrator"]
+    assert tow["states"][:2] == ["truck.x", "truck.y"] and len(tow["states"]) == 8
+    assert tow["controls"] == ["truck.ax", "truck.ay", "trailer.ax", "trailer.ay"]
+    assert "truck.vx" in tow["update"]["trailer.vx"]  # the coupling is visible
+
+    rng = np.random.default_rng(0)
+    x, u = rng.standard_normal(int(sum(g.nx))), rng.standard_normal(int(sum(g.nu)))
+    nxt = np.asarray(ca.evalf(g.stage_step(ca.DM(x), ca.DM(u)))).ravel()
+    # evaluate the printed expressions: agent.state -> value
+    names = {"ped": ("x", "y", "v", "theta", "a", "omega")}
+    names |= {a: ("x", "y", "vx", "vy", "ax", "ay") for a in ("truck", "trailer")}
+    xs, us = np.split(x, [4, 8]), np.split(u, [2, 4])
+    env = {"cos": np.cos, "sin": np.sin, "sq": np.square}
+    for i, a in enumerate(("ped", "truck", "trailer")):
+        env[a] = SimpleNamespace(**dict(zip(names[a], [*xs[i], *us[i]], strict=True)))
+    got = [eval(e, env) for e in tow["update"].values()]  # noqa: S307 - our own printout
+    np.testing.assert_allclose(got, nxt[4:], rtol=1e-12, atol=1e-12)
+    own = np.asarray(ca.evalf(agents[2].dynamics.step(ca.DM(xs[2]), ca.DM(us[2]), 0.5))).ravel()
+    assert np.abs(own - nxt[8:]).max() > 1e-3  # the own step would be wrong here
+    assert list(groups[0]["update"]) == ["x", "y", "v", "theta"]  # uncoupled: as before
+
+    rep = inspect_report(g, hessian=False)
+    assert json.loads(json.dumps(rep["dynamics"])) == groups
+    assert "tow [truck, trailer] (coupled" in report_text(g, rep, spy=False)

@@ -46,7 +46,7 @@ def test_potential_minimizer_certifies(crossing):
     # IPOPT converges to |grad| ~ 1e-9; LM stops by its relative energy test (ftol) at
     # |grad| ~ 1.2e-5 (gtol 1e-8 is not reached): the bounds follow what each reaches
     for u, stat_bound in ((ip.controls, 1e-8), (lm.controls, 3e-5)):
-        cert = nash_certificate(g, u, p)
+        cert = nash_certificate(g, p, u)
         assert cert.ok
         assert cert.agents == ("a0", "a1")
         assert np.all(cert.best_response_gap >= 0)
@@ -62,7 +62,7 @@ def test_perturbed_agent_is_flagged(crossing):
     u = sol.controls.copy()
     a, b = g.uoff[1], g.uoff[2]
     u[a:b] += 0.2 * rng.standard_normal(b - a)
-    cert = nash_certificate(g, u, p)
+    cert = nash_certificate(g, p, u)
     assert not cert.ok
     assert not cert.stat_ok[1] and not cert.gap_ok[1]
     assert cert.stationarity[1] > 0.1
@@ -122,7 +122,7 @@ def test_agent_costs_from_terms_by_hand():
 
 def test_stationarity_only_and_outputs(crossing):
     g, p, _, sol = crossing
-    cert = nash_certificate(g, sol.controls, p, {"best_response": False})
+    cert = nash_certificate(g, p, sol.controls, {"best_response": False})
     assert cert.ok
     assert cert.options == NashOptions(best_response=False)
     assert cert.best_response_status == ("skipped", "skipped")
@@ -146,14 +146,14 @@ def test_stationarity_only_and_outputs(crossing):
 def test_bad_options_raise(crossing, options, field):
     g, p, _, sol = crossing
     with pytest.raises(SpecError) as e:
-        nash_certificate(g, sol.controls, p, options)
+        nash_certificate(g, p, sol.controls, options)
     assert e.value.field == field
 
 
 def test_one_problem_only(crossing):
     g, p, _, sol = crossing
     with pytest.raises(SpecError) as e:
-        nash_certificate(g, np.stack([sol.controls, sol.controls]), p)
+        nash_certificate(g, p, np.stack([sol.controls, sol.controls]))
     assert e.value.field == "u/p"
 
 
@@ -185,10 +185,10 @@ def test_small_perturbation_near_the_stationarity_tolerance_is_flagged(crossing)
     u = _perturbed(g, sol, 1e-3 * 3 * tol * scale0 / s1)  # stationarity is linear in eps here
     s, scale = _stat_and_scale(g, u, p)
     assert 2 * tol * scale < s < 4 * tol * scale
-    cert = nash_certificate(g, u, p, {"best_response": False})
+    cert = nash_certificate(g, p, u, {"best_response": False})
     assert not cert.ok and not cert.stat_ok[1]  # (agent 0 is coupled by the collision term)
     assert cert.stationarity[1] == pytest.approx(s, rel=1e-12)
-    assert nash_certificate(g, sol.controls, p, {"best_response": False}).ok
+    assert nash_certificate(g, p, sol.controls, {"best_response": False}).ok
 
 
 def test_stationarity_exactly_at_the_tolerance_passes(crossing):
@@ -198,8 +198,8 @@ def test_stationarity_exactly_at_the_tolerance_passes(crossing):
     at, worst = max(rel), int(np.argmax(rel))
     s, scale = _stat_and_scale(g, u, p, worst)
     exact = _exactly(s, scale)  # exact * scale == s in floating point: "at" the tolerance
-    assert nash_certificate(g, u, p, {"best_response": False, "stat_tol": exact}).ok
-    below = nash_certificate(g, u, p, {"best_response": False, "stat_tol": at * (1 - 1e-9)})
+    assert nash_certificate(g, p, u, {"best_response": False, "stat_tol": exact}).ok
+    below = nash_certificate(g, p, u, {"best_response": False, "stat_tol": at * (1 - 1e-9)})
     assert not below.ok and not below.stat_ok[worst]
 
 
@@ -219,10 +219,10 @@ def test_best_response_gap_at_and_near_the_tolerance(crossing):
     g, p, _, sol = crossing
     tol = 1e-6  # the documented default, not read from the code
     loose = {"stat_tol": 1.0}  # isolate the gap test
-    g1 = nash_certificate(g, _perturbed(g, sol, 0.05), p, loose).relative_gap[1]
+    g1 = nash_certificate(g, p, _perturbed(g, sol, 0.05), loose).relative_gap[1]
     assert g1 > 100 * tol
     u = _perturbed(g, sol, 0.05 * np.sqrt(3 * tol / g1))
-    cert = nash_certificate(g, u, p, loose)
+    cert = nash_certificate(g, p, u, loose)
     assert 2 * tol < cert.relative_gap[1] < 4 * tol
     assert not cert.ok and list(cert.gap_ok) == [True, False]
     at = cert.relative_gap[1]
@@ -230,7 +230,7 @@ def test_best_response_gap_at_and_near_the_tolerance(crossing):
     exact = _exactly(
         cert.best_response_gap[1], 1 + min(abs(cert.costs[1]), NashOptions().scale_cap)
     )
-    on = nash_certificate(g, u, p, {**loose, "gap_tol": exact})
+    on = nash_certificate(g, p, u, {**loose, "gap_tol": exact})
     assert on.best_response_gap[1] == cert.best_response_gap[1]  # the same best response
     assert on.ok and scale == pytest.approx(1 + abs(cert.costs[1]), rel=1e-12)
-    assert not nash_certificate(g, u, p, {**loose, "gap_tol": at * (1 - 1e-6)}).ok
+    assert not nash_certificate(g, p, u, {**loose, "gap_tol": at * (1 - 1e-6)}).ok

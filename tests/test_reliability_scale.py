@@ -38,7 +38,7 @@ def test_certificate_does_not_pass_a_failed_huge_solve():
     p = g.default_params()
     res = solve_ipopt(g, p)
     assert not res.status.ok  # the regime the issue describes: a failed solve
-    cert = nash_certificate(g, res.controls, p)
+    cert = nash_certificate(g, p, res.controls)
     C, s = cert.costs, cert.stationarity
     assert np.all(C > 1e200) and np.all(s > 1e90)
     assert np.all(s <= 1e-5 * (1 + np.abs(C)))  # what the unbounded relative test accepted
@@ -51,7 +51,7 @@ def test_certificate_of_non_finite_values_fails_with_a_reason(small):
     """Closes: non-finite costs or controls certified or crashing the certificate."""
     g, p, u = small
     p_bad = g.params.pack({"w.a0.goal": 1e200}, base=p)
-    cert = nash_certificate(g, u, p_bad)
+    cert = nash_certificate(g, p_bad, u)
     assert not np.isfinite(cert.costs[0]) and not cert.ok
     assert not cert.stat_ok[0] and not cert.gap_ok[0]
     assert "not finite" in cert.reasons[0]
@@ -59,7 +59,7 @@ def test_certificate_of_non_finite_values_fails_with_a_reason(small):
     assert d["ok"] is False and d["costs"][0] is None  # JSON-safe
     u_nan = u.copy()
     u_nan[3] = np.nan
-    cert = nash_certificate(g, u_nan, p)
+    cert = nash_certificate(g, p, u_nan)
     assert not cert.ok and all("not finite" in r for r in cert.reasons)
     assert cert.best_response_status == ("skipped", "skipped")
 
@@ -67,8 +67,8 @@ def test_certificate_of_non_finite_values_fails_with_a_reason(small):
 def test_unconverged_best_response_is_no_evidence(small):
     """Closes: a best-response solve that stopped early counted as a zero gap."""
     g, p, u = small
-    assert nash_certificate(g, u, p).ok
-    cert = nash_certificate(g, u, p, {"max_iter": 0})
+    assert nash_certificate(g, p, u).ok
+    cert = nash_certificate(g, p, u, {"max_iter": 0})
     assert set(cert.best_response_status) == {"Maximum_Iterations_Exceeded"}
     assert cert.stat_ok.all() and not cert.gap_ok.any() and not cert.ok
     assert all("did not converge" in r for r in cert.reasons)
@@ -84,14 +84,14 @@ def test_certificate_methods_by_size_agree(small):
     a, b = g.uoff[1], g.uoff[2]
     v[a:b] += 0.2 * np.random.default_rng(3).standard_normal(b - a)
     n = int(b - a)
-    exact = nash_certificate(g, v, p)
-    lbfgs = nash_certificate(g, v, p, {"exact_hessian_max": n - 1})
+    exact = nash_certificate(g, p, v)
+    lbfgs = nash_certificate(g, p, v, {"exact_hessian_max": n - 1})
     assert exact.best_response_method == ("exact", "exact")
     assert lbfgs.best_response_method == ("l-bfgs", "l-bfgs")
     assert exact.best_response_gap[1] > 0.1 and not lbfgs.ok
     np.testing.assert_allclose(lbfgs.best_response_costs, exact.best_response_costs, rtol=1e-6)
-    assert nash_certificate(g, u, p, {"exact_hessian_max": n - 1}).ok
-    only = nash_certificate(g, v, p, {"best_response_max": n - 1})
+    assert nash_certificate(g, p, u, {"exact_hessian_max": n - 1}).ok
+    only = nash_certificate(g, p, v, {"best_response_max": n - 1})
     assert only.best_response_method == ("too large", "too large")
     assert only.best_response_status == ("skipped", "skipped")
     assert "stationarity only" in only.summary() and not only.ok  # stationarity still fails
