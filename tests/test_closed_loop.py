@@ -308,3 +308,17 @@ def test_cli_errors_are_one_line_exit_2(args, message, tmp_path, capsys):
     assert rc == 2
     assert message in err, err
     assert "Traceback" not in err
+
+
+def test_figures_of_a_run(tmp_path):
+    from PIL import Image
+
+    from scenarios.commands.simulate import write_figures
+
+    rep = run_episodes(StandInConfig(), 2, seed=0, out=tmp_path, progress=False)
+    paths = write_figures(tmp_path, rep)
+    assert [p.name for p in paths] == ["episode-00000.png", "episode-00000.gif", "latency.png"]
+    with Image.open(paths[1]) as gif:
+        assert gif.n_frames == len(rep.logs[0].truth)  # one frame per period (8 steps + end)
+    for p in paths:
+        assert p.stat().st_size > 1000
