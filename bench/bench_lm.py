@@ -1,10 +1,10 @@
-"""Time one Levenberg-Marquardt step per problem: dense vs structured Gauss-Newton backends.
+"""Time one Levenberg-Marquardt step per problem: dense, structured and fused GN backends.
 
 Not a test. Run from the repository root::
 
     .venv/bin/python bench/bench_lm.py            # N in {2, 4, 8, 12}, K = 40, batches 1 and 64
     .venv/bin/python bench/bench_lm.py --quick    # smoke run: N = 2, batches 1 and 16
-    .venv/bin/python bench/bench_lm.py --agents 2 4 --batches 1 64 --paths struct struct-C fused fused-C
+    .venv/bin/python bench/bench_lm.py --agents 2 4 --paths struct struct-C fused fused-C numpy
 
 Games: ``N`` unicycles on a circle crossing to the opposite side (the construction of
 ``tests/helpers.crossing_spec``: goal, velocity, acceleration, turn rate, three soft

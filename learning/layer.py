@@ -8,7 +8,8 @@ problem (``(...)``, int64, not differentiable; :data:`STATUS_CODES`, :func:`deco
 All leading dimensions (e.g. batch ``B`` x modes ``M``) are flattened into one batch of
 problems that are solved together by a Gauss-Newton backend of :mod:`solvers.lm`
 (the one ``options.backend`` names: :class:`solvers.structured.StructuredGN` by default,
-:class:`solvers.gn.DenseGN` with ``backend="dense"``; any object with the same
+:class:`solvers.fast_gn.FusedGN` with ``backend="fused"``, :class:`solvers.gn.DenseGN`
+with ``backend="dense"``; any object with the same
 ``linearize`` / ``solve`` / ``energy`` methods can be plugged in); CasADi evaluates every
 problem of the batch in one mapped call, never a Python loop per problem.
 
@@ -479,7 +480,9 @@ class GameLayer(nn.Module):
         ``"mask"`` (such problems give zeros, status ``NONFINITE`` and zero gradients).
     backend: a Gauss-Newton backend instance (``linearize``/``solve``/``energy`` as
         :class:`solvers.lm.DenseGN`); default: the one ``options.backend`` names. For
-        speed pass ``solvers.structured.StructuredGN(game, compiled=True)``.
+        speed with two to four agents pass ``solvers.fast_gn.FusedGN(game, compiled=True)``
+        (and ``compiled=True``): about 3x less CPU than ``StructuredGN(compiled=True)``
+        on the RPI setting (``bench/bench_layer.py``).
     compiled: evaluate the backward pass's CasADi functions as generated C
         (:func:`solvers.codegen.compile_functions`, compiled once and cached on disk in
         ``cache_dir``; needs a C compiler). Values are unchanged up to rounding; the

@@ -27,21 +27,29 @@ and mapped over the batch (:class:`solvers.batch.BatchFunction`, ``map`` with th
     (ellipsoidal damping and :func:`solvers.lm.residual_cosine` only).
 
 The trial energy is the game's ``energy`` function. With ``compiled=True`` the functions
-are generated C (:func:`solvers.codegen.compile_functions`, cached on disk by a hash of
-their serialization, i.e. by the game's structure, never by parameter values: ``p`` is an
-input). Steps equal the interpreted structured and dense backends up to rounding (the
+are generated C (:func:`solvers.codegen.compile_functions`, one library per function,
+cached on disk by a hash of their serialization, i.e. by the game's structure, never by
+parameter values: ``p`` is an input). For C, ``fused_solve`` and ``fused_sweep`` take a
+staged form with the same arithmetic: ``K`` calls of one small SX function per stage
+(Riccati step, backward sweep, forward sweep; stage blocks are exchanged in one pattern
+for all stages), which compiles at ``-O1`` in a fraction of the time of the unrolled graph
+(N = 2, K = 40: 4.9 s of compiler CPU instead of 13.4; N = 4: 11.6 s instead of 35 at
+``-O0``), while the interpreter runs the unrolled graph, where each call would cost a
+microsecond. Steps equal the interpreted structured and dense backends up to rounding (the
 Riccati solve uses a Cholesky factor where :class:`StructuredGN` inverts; tested to 1e-12).
 
 Cost
     The unrolled graph grows with ``K (nz + m)^3`` scalar instructions; CasADi's SX virtual
     machine runs about 3 ns per instruction, generated C at ``-O1`` about 0.4 ns. Measured
-    (``bench/bench_lm.py``, crossing game, K = 40, CPU per problem and step): for two agents
-    generated C is 4.5x faster than :class:`StructuredGN` with generated C in a batch of 64
-    and 7x for one problem; interpreted it is 4 to 5x faster for one problem and about 10 %
-    slower in a batch of 64 (numpy amortizes its per-stage calls over the batch). Above
-    :data:`MAX_STAGE_SIZE`, or when :class:`StructuredGN` itself falls back to the dense solve
-    (short horizons, rows coupling many stages), the backend delegates to
-    :class:`StructuredGN` and says why in :attr:`FusedGN.fallback`.
+    (``bench/bench_lm.py``, crossing game, K = 40, CPU per problem and step): generated C
+    is 4.5x (two agents) and 3.5x (four) faster than :class:`StructuredGN` with generated C
+    in a batch of 64, 12x and 6x for one problem; interpreted it is 2 to 5x faster for one
+    problem and 20 to 25 % slower in a batch of 64 (numpy amortizes its per-stage calls over
+    the batch, the SX interpreter does not); for eight agents (generated C only) 2.4x in a
+    batch and 2.7x for one problem. Above :data:`MAX_STAGE_SIZE` (interpreted) or
+    :data:`MAX_STAGE_SIZE_COMPILED` (generated C), or when :class:`StructuredGN` itself
+    falls back to the dense solve (short horizons, rows coupling many stages), the backend
+    delegates to :class:`StructuredGN` and says why in :attr:`FusedGN.fallback`.
 
 A zero damping with a rank-deficient ``J`` gives a zero pivot, so the step is NaN/inf
 and :func:`solvers.lm.solve_lm` marks that problem ``NONFINITE`` (the numpy backends raise
@@ -62,14 +70,18 @@ from .batch import BatchFunction
 from .gn import DenseGN, Linearization
 from .structured import StageLayout, StructuredGN, _var_columns, stage_layout
 
-__all__ = ["MAX_STAGE_SIZE", "FusedGN", "FusedLinearization"]
+__all__ = ["MAX_STAGE_SIZE", "MAX_STAGE_SIZE_COMPILED", "FusedGN", "FusedLinearization"]
 
 #: Largest stage size ``d = nz + m`` (augmented state + joint controls) the fused backend
-#: builds (4 unicycles: 24). The unrolled graph grows like ``K d^3`` instructions (204k for
-#: ``fused_solve`` at d = 24, K = 40), its generated C is compiled at ``-O0`` above
-#: :data:`solvers.codegen.AUTO_O1_LIMIT`, and in a batch it is then no faster than the numpy
-#: recursion, so above this size :class:`FusedGN` delegates to :class:`StructuredGN`.
+#: builds (4 unicycles: 24, the largest measured). The unrolled graphs it builds for the
+#: interpreter grow like ``K d^3`` instructions (204k for ``fused_solve`` at d = 24,
+#: K = 40; build time and memory follow), so above this size :class:`FusedGN` delegates
+#: to :class:`StructuredGN`.
 MAX_STAGE_SIZE = 24
+#: The same limit with ``compiled=True``, where only the staged graphs are built (one SX
+#: function per stage; 32k instructions for the Riccati step at d = 48, 8 unicycles, the
+#: largest measured).
+MAX_STAGE_SIZE_COMPILED = 48
 
 
 @dataclass
@@ -165,10 +177,14 @@ class FusedGN:
         r = game.function("traj_residual")(x, u, p)
         Jr = ca.jacobian(r, ca.vertcat(x[xsel.tolist()], u))
         self.layout = L = stage_layout(game, Jr.sparsity())
-        if L.d > MAX_STAGE_SIZE:
-            self.fallback = (
-                f"stage size nz + m = {L.d} > {MAX_STAGE_SIZE}: the unrolled Riccati graph "
-                f"(~K d^3 instructions) is slower than StructuredGN's numpy recursion"
+        limit = MAX_STAGE_SIZE_COMPILED if self.compiled else MAX_STAGE_SIZE
+        if L.d > limit:
+            self.fallback = f"stage size nz + m = {L.d} > {limit}" + (
+                " (compiled)"
+                if self.compiled
+                else ": the unrolled Riccati graph (~K d^3 instructions) is slower than "
+                "StructuredGN's numpy recursion; compiled=True allows up to "
+                f"{MAX_STAGE_SIZE_COMPILED}"
             )
         elif (L.K + 1) * (
             4 * L.nz**2 * L.d + 2 * L.d**3
@@ -185,18 +201,21 @@ class FusedGN:
             return
         self._u_index = _joint_u_index(game, L)
         f_lin = self._build_linearize(x, u, p, r, Jr)
-        f_solve, f_sweep, f_diag = self._build_solve()
         f_energy = game.function("energy")
         if self.compiled:
+            # staged graphs only (the unrolled ones grow like K d^3 and are not needed)
+            f_solve, f_sweep, f_diag = self._build_solve_staged()
             from .codegen import compile_functions
 
             # one library per function: compile_functions picks -O1 or -O0 by size, and
             # each of these stays under the -O1 limit where their sum would not
-            fs = [f_lin, f_solve, f_sweep, f_energy]
-            f_lin, f_solve, f_sweep, f_energy = (
+            fs = [f_lin, f_solve, f_sweep, f_diag, f_energy]
+            f_lin, f_solve, f_sweep, f_diag, f_energy = (
                 compile_functions([f], f"epo_{f.name()}_n{game.N}_k{game.K}", cache_dir)[f.name()]
                 for f in fs
             )
+        else:
+            f_solve, f_sweep, f_diag = self._build_solve()
         self._lin = BatchFunction(f_lin, threads)
         self._solve = BatchFunction(f_solve, threads)
         self._sweep = BatchFunction(f_sweep, threads)
@@ -251,17 +270,35 @@ class FusedGN:
                 for cc in s:
                     FG[L.z_index("u", ell, cc), L.z_index("u", ell - 1, cc)] = 1.0
             FGs.append(FG)
-        # H_k is symmetric: only its lower triangle goes out (and is read by fused_solve)
-        self._sp_H = [ca.tril(hk).sparsity() for hk in Hs]
-        # constant nonzeros of FG_k (shifts, identities, dt) are built into fused_solve
-        self._fg = []
-        fg_var = []
-        for fk in FGs:
-            nzs = [fk.nz[i] for i in range(fk.nnz())]
-            const = np.array([e.is_constant() for e in nzs], dtype=bool)
-            vals = np.array([float(e) if c else 0.0 for e, c in zip(nzs, const, strict=True)])
-            self._fg.append((fk.sparsity(), const, vals))
-            fg_var.extend(e for e, c in zip(nzs, const, strict=True) if not c)
+        # Stage blocks go out in one pattern for all stages k < K (the union of their lower
+        # triangles; explicit zeros where a stage has none), so that one stage function can
+        # read any stage; the terminal block H_K,zz has its own pattern.
+        spHu = ca.tril(Hs[0]).sparsity()
+        for hk in Hs[1:K]:
+            spHu = spHu + ca.tril(hk).sparsity()
+        spHK = ca.tril(Hs[K][:nz, :nz]).sparsity()
+        # FG_k in one pattern too; an entry that is the same constant in every stage
+        # (shifts, identities, dt) is built into the solve functions instead of read
+        spF = FGs[0].sparsity()
+        for fk in FGs[1:]:
+            spF = spF + fk.sparsity()
+        proj = [ca.project(fk, spF) for fk in FGs]
+        const = np.ones(spF.nnz(), dtype=bool)
+        vals = np.zeros(spF.nnz())
+        for i in range(spF.nnz()):
+            es = [pk.nz[i] for pk in proj]
+            if all(e.is_constant() for e in es) and len({float(e) for e in es}) == 1:
+                vals[i] = float(es[0])
+            else:
+                const[i] = False
+        self._sp_H = (spHu, spHK)
+        self._fg = (spF, const, vals)
+        var = np.flatnonzero(~const).tolist()
+        H_out = ca.vertcat(
+            *[ca.project(ca.tril(hk), spHu).nz[:] for hk in Hs[:K]],
+            ca.tril(Hs[K][:nz, :nz]).nz[:] if spHK.nnz() else ca.SX(0, 1),
+        )
+        FG_out = ca.vertcat(*[pk.nz[var] for pk in proj]) if var else ca.SX(0, 1)
         # J'r by the adjoint sweep over stages
         gk = [None] * K
         lam = cs[K][:nz]
@@ -274,8 +311,8 @@ class FusedGN:
             ca.densify(r),
             0.5 * ca.sumsqr(r),
             ca.densify(grad),
-            _nz([ca.tril(hk) for hk in Hs]),
-            ca.vertcat(*fg_var) if fg_var else ca.SX(0, 1),
+            ca.densify(H_out),
+            ca.densify(FG_out),
         ]
         partial = ca.Function("fused_partials", [x, u, p], ca.cse(outs))
         xr = g.function("rollout")(u, p)
@@ -293,45 +330,59 @@ class FusedGN:
         inv[self._u_index] = np.arange(self._u_index.size)
         return inv
 
+    # stage pieces: one stage's H_k, FG_k and factor from vectors of nonzeros
+    def _stage_H(self, v) -> ca.SX:
+        return ca.tril2symm(ca.SX(self._sp_H[0], v))
+
+    def _stage_FG(self, v) -> ca.SX:
+        sp, const, vals = self._fg
+        var = iter(ca.vertsplit(v)) if v.numel() else iter(())
+        nzs = [ca.SX(c_val) if c else next(var) for c, c_val in zip(const, vals, strict=True)]
+        return ca.SX(sp, ca.vertcat(*nzs)) if nzs else ca.SX(sp)
+
+    def _pack(self, C: ca.SX, Y: ca.SX) -> ca.SX:
+        """One stage's factor as a dense vector: lower ``C`` (column-major), then ``vec(Y)``."""
+        m = self.layout.m
+        low = [j * m + i for j in range(m) for i in range(j, m)]  # Sparsity.lower order
+        return ca.vertcat(ca.densify(C).nz[low], ca.densify(ca.vec(Y)))
+
+    def _unpack(self, v) -> tuple[ca.SX, ca.SX]:
+        m, nz = self.layout.m, self.layout.nz
+        nc = m * (m + 1) // 2
+        return ca.SX(ca.Sparsity.lower(m), v[:nc]), ca.reshape(v[nc : nc + m * nz], m, nz)
+
+    def _sizes(self) -> tuple[int, int, int, int]:
+        """Nonzeros per stage of ``H`` (k < K), of ``H_K``, of ``FG`` (read) and of a factor."""
+        m, nz = self.layout.m, self.layout.nz
+        return (
+            self._sp_H[0].nnz(),
+            self._sp_H[1].nnz(),
+            int((~self._fg[1]).sum()),
+            m * (m + 1) // 2 + m * nz,
+        )
+
     def _build_solve(self) -> tuple[ca.Function, ca.Function, ca.Function]:
+        """``fused_solve``, ``fused_sweep`` and ``fused_diag`` as SX graphs unrolled over
+        the stages (fastest in CasADi's interpreter)."""
         L = self.layout
         K, m, nz = L.K, L.m, L.nz
-        nH = sum(sp.nnz() for sp in self._sp_H)
-        nF = sum(int((~c).sum()) for _, c, _ in self._fg)
-        Hin = ca.SX.sym("H", nH)
-        Fin = ca.SX.sym("FG", nF)
+        nHu, nHK, nFv, nfac = self._sizes()
+        Hin = ca.SX.sym("H", K * nHu + nHK)
+        Fin = ca.SX.sym("FG", K * nFv)
         Din = ca.SX.sym("D", self.game.n_u)
         bin_ = ca.SX.sym("rhs", self.game.n_u)
-        Hs, off = [], 0
-        for sp in self._sp_H:
-            Hs.append(ca.tril2symm(ca.SX(sp, Hin[off : off + sp.nnz()])))
-            off += sp.nnz()
-        FGs, off = [], 0
-        for sp, const, vals in self._fg:
-            nv = int((~const).sum())
-            var = iter(ca.vertsplit(Fin[off : off + nv])) if nv else iter(())
-            off += nv
-            nzs = [ca.SX(v) if c else next(var) for c, v in zip(const, vals, strict=True)]
-            FGs.append(ca.SX(sp, ca.vertcat(*nzs)) if nzs else ca.SX(sp))
+        Hs = [self._stage_H(Hin[k * nHu : (k + 1) * nHu]) for k in range(K)]
+        FGs = [self._stage_FG(Fin[k * nFv : (k + 1) * nFv]) for k in range(K)]
+        PK = ca.tril2symm(ca.SX(self._sp_H[1], Hin[K * nHu :]))
         Dj = Din[self._u_index.tolist()]
         bj = bin_[self._u_index.tolist()]
-        # Riccati recursion with C C' = Q_uu (Cholesky) and Y = C^{-1} Q_uz per stage:
-        # P <- Q_zz - Y'Y. Only lower triangles of the symmetric matrices are referenced,
-        # so the graph computes only those.
-        P = Hs[K][:nz, :nz]
+        P = PK
         factor = [None] * K
         for k in range(K - 1, -1, -1):
-            FG = FGs[k]
-            Q = ca.tril2symm(ca.tril(Hs[k] + ca.mtimes(FG.T, ca.mtimes(P, FG))))
-            C = _cholesky(Q[nz:, nz:] + ca.diag(Dj[k * m : (k + 1) * m]))
-            Y = ca.solve(C, Q[nz:, :nz])
+            P, C, Y = _riccati_stage(P, Hs[k], FGs[k], Dj[k * m : (k + 1) * m], nz)
             factor[k] = (C, Y)
-            P = ca.tril2symm(ca.tril(Q[:nz, :nz] - ca.mtimes(Y.T, Y)))
         du = self._sweeps(FGs, factor, bj)
-        low = [j * m + i for j in range(m) for i in range(j, m)]  # Sparsity.lower order
-        fac = ca.vertcat(
-            *[ca.vertcat(ca.densify(C).nz[low], ca.densify(ca.vec(Y))) for C, Y in factor]
-        )
+        fac = ca.vertcat(*[self._pack(C, Y) for C, Y in factor])
         f_solve = ca.Function(
             "fused_solve",
             [Hin, Fin, Din, bin_],
@@ -340,14 +391,8 @@ class FusedGN:
             ["du", "factor"],
         )
         # the same sweeps from a stored factorization (further right-hand sides)
-        fin = ca.SX.sym("factor", fac.numel())
-        sw, off = [], 0
-        nc = m * (m + 1) // 2
-        for _ in range(K):
-            C = ca.SX(ca.Sparsity.lower(m), fin[off : off + nc])
-            Y = ca.reshape(fin[off + nc : off + nc + m * nz], m, nz)
-            sw.append((C, Y))
-            off += nc + m * nz
+        fin = ca.SX.sym("factor", K * nfac)
+        sw = [self._unpack(fin[k * nfac : (k + 1) * nfac]) for k in range(K)]
         f_sweep = ca.Function(
             "fused_sweep",
             [fin, Fin, bin_],
@@ -356,7 +401,7 @@ class FusedGN:
             ["du"],
         )
         # diag(J'J): W_K = H_K,zz; M = H_k + FG'W FG; diag_k = diag(M_uu); W = M_zz
-        W = Hs[K][:nz, :nz]
+        W = PK
         dg = [None] * K
         for k in range(K - 1, -1, -1):
             M = Hs[k] + ca.mtimes(FGs[k].T, ca.mtimes(W, FGs[k]))
@@ -367,30 +412,112 @@ class FusedGN:
         )
         return f_solve, f_sweep, f_diag
 
-    def _sweeps(self, FGs: list, factor: list, bj: ca.SX) -> ca.SX:
-        """``du`` (game order) from the stage factors ``(C_k, Y_k)`` and the right-hand side.
+    def _build_solve_staged(self) -> tuple[ca.Function, ca.Function, ca.Function]:
+        """``fused_solve``, ``fused_sweep`` and ``fused_diag`` as MX graphs of ``K`` calls
+        of small SX stage functions (the same arithmetic as :meth:`_build_solve`): the form
+        to compile, since generated C of one stage compiles in a fraction of the time of
+        the unrolled graph and calls cost nothing in C."""
+        L = self.layout
+        K, m, nz = L.K, L.m, L.nz
+        nHu, nHK, nFv, nfac = self._sizes()
+        nP = nz * (nz + 1) // 2
+        lowz = [j * nz + i for j in range(nz) for i in range(j, nz)]
 
-        Backward: ``w_k = C_k^{-1} (b_k - G_k'pv)``, ``pv <- F_k'pv + Y_k'w_k`` from
-        ``pv = 0``; forward from ``dz_0 = 0``: ``u_k = C_k^{-T} (w_k - Y_k dz_k)``,
-        ``dz_{k+1} = F_k dz_k + G_k u_k``.
-        """
+        def lower_nz(A):
+            return ca.densify(A).nz[lowz]
+
+        def sym_P(v):
+            return ca.tril2symm(ca.SX(ca.Sparsity.lower(nz), v))
+
+        Ps, Hk = ca.SX.sym("P", nP), ca.SX.sym("H", nHu)
+        Fk, Dk = ca.SX.sym("FG", nFv), ca.SX.sym("D", m)
+        Pn, C, Y = _riccati_stage(sym_P(Ps), self._stage_H(Hk), self._stage_FG(Fk), Dk, nz)
+        f_ric = ca.Function(
+            "fused_riccati_stage", [Ps, Hk, Fk, Dk], [lower_nz(Pn), self._pack(C, Y)]
+        )
+        HK = ca.SX.sym("HK", nHK)
+        f_init = ca.Function(
+            "fused_riccati_init", [HK], [lower_nz(ca.tril2symm(ca.SX(self._sp_H[1], HK)))]
+        )
+        fk, pv, bk = ca.SX.sym("factor", nfac), ca.SX.sym("pv", nz), ca.SX.sym("b", m)
+        C, Y = self._unpack(fk)
+        pvn, w = _sweep_back(pv, C, Y, self._stage_FG(Fk), bk, nz)
+        f_back = ca.Function("fused_sweep_back", [pv, fk, Fk, bk], [ca.densify(pvn), ca.densify(w)])
+        z, ws = ca.SX.sym("z", nz), ca.SX.sym("w", m)
+        u, zn = _sweep_fwd(z, C, Y, ws, self._stage_FG(Fk))
+        f_fwd = ca.Function("fused_sweep_fwd", [z, fk, Fk, ws], [ca.densify(u), ca.densify(zn)])
+
+        Hin = ca.MX.sym("H", K * nHu + nHK)
+        Fin = ca.MX.sym("FG", K * nFv)
+        Din = ca.MX.sym("D", self.game.n_u)
+        bin_ = ca.MX.sym("rhs", self.game.n_u)
+        Dj = Din[self._u_index.tolist()]
+        bj = bin_[self._u_index.tolist()]
+        F = [Fin[k * nFv : (k + 1) * nFv] for k in range(K)]
+
+        def sweeps(facs):
+            pv = ca.MX.zeros(nz, 1)
+            w = [None] * K
+            for k in range(K - 1, -1, -1):
+                pv, w[k] = f_back(pv, facs[k], F[k], bj[k * m : (k + 1) * m])
+            z = ca.MX.zeros(nz, 1)
+            us = []
+            for k in range(K):
+                uk, z = f_fwd(z, facs[k], F[k], w[k])
+                us.append(uk)
+            return ca.vertcat(*us)[self._game_order().tolist()]
+
+        P = f_init(Hin[K * nHu :])
+        facs = [None] * K
+        for k in range(K - 1, -1, -1):
+            P, facs[k] = f_ric(P, Hin[k * nHu : (k + 1) * nHu], F[k], Dj[k * m : (k + 1) * m])
+        f_solve = ca.Function(
+            "fused_solve",
+            [Hin, Fin, Din, bin_],
+            [sweeps(facs), ca.vertcat(*facs)],
+            ["H", "FG", "D", "rhs"],
+            ["du", "factor"],
+        )
+        fin = ca.MX.sym("factor", K * nfac)
+        f_sweep = ca.Function(
+            "fused_sweep",
+            [fin, Fin, bin_],
+            [sweeps([fin[k * nfac : (k + 1) * nfac] for k in range(K)])],
+            ["factor", "FG", "rhs"],
+            ["du"],
+        )
+        # diag(J'J): W_K = H_K,zz; M = H_k + FG'W FG; diag_k = diag(M_uu); W = M_zz
+        Ws = ca.SX.sym("W", nP)
+        FG = self._stage_FG(Fk)
+        M = self._stage_H(Hk) + ca.mtimes(FG.T, ca.mtimes(sym_P(Ws), FG))
+        f_dstage = ca.Function(
+            "fused_diag_stage",
+            [Ws, Hk, Fk],
+            [lower_nz(ca.tril2symm(ca.tril(M[:nz, :nz]))), ca.densify(ca.diag(M[nz:, nz:]))],
+        )
+        W = f_init(Hin[K * nHu :])
+        dg = [None] * K
+        for k in range(K - 1, -1, -1):
+            W, dg[k] = f_dstage(W, Hin[k * nHu : (k + 1) * nHu], F[k])
+        f_diag = ca.Function("fused_diag", [Hin, Fin], [ca.vertcat(*dg)], ["H", "FG"], ["diag"])
+        return f_solve, f_sweep, f_diag
+
+    def _sweeps(self, FGs: list, factor: list, bj: ca.SX) -> ca.SX:
+        """``du`` (game order) from the stage factors ``(C_k, Y_k)`` and the right-hand side
+        (see :func:`_sweep_back`, :func:`_sweep_fwd`)."""
         L = self.layout
         K, m, nz = L.K, L.m, L.nz
         pv = ca.SX.zeros(nz, 1)
         ws = [None] * K
         for k in range(K - 1, -1, -1):
             C, Y = factor[k]
-            v = ca.mtimes(FGs[k].T, pv)
-            ws[k] = ca.solve(C, bj[k * m : (k + 1) * m] - v[nz:])
-            pv = v[:nz] + ca.mtimes(Y.T, ws[k])
+            pv, ws[k] = _sweep_back(pv, C, Y, FGs[k], bj[k * m : (k + 1) * m], nz)
         z = ca.SX.zeros(nz, 1)
         us = []
         for k in range(K):
             C, Y = factor[k]
-            uk = ca.solve(C.T, ws[k] - ca.mtimes(Y, z))
+            uk, z = _sweep_fwd(z, C, Y, ws[k], FGs[k])
             us.append(uk)
-            if k + 1 < K:
-                z = ca.mtimes(FGs[k], ca.vertcat(z, uk))
         return ca.densify(ca.vertcat(*us)[self._game_order().tolist()])
 
     @property
@@ -458,10 +585,32 @@ def _joint_u_index(game: PotentialGame, L: StageLayout) -> np.ndarray:
     return out.reshape(-1)
 
 
-def _nz(blocks: list) -> ca.SX:
-    """The structural nonzeros of every block, concatenated (column-major per block)."""
-    parts = [b.nz[:] for b in blocks if b.nnz()]
-    return ca.vertcat(*parts) if parts else ca.SX(0, 1)
+def _riccati_stage(P: ca.SX, H: ca.SX, FG: ca.SX, D: ca.SX, nz: int):
+    """One stage of the backward Riccati recursion: ``(P_k, C_k, Y_k)`` from ``P_{k+1}``.
+
+    ``Q = H_k + FG_k' P FG_k``; ``C C' = Q_uu + diag(D)`` (Cholesky); ``Y = C^{-1} Q_uz``;
+    ``P_k = Q_zz - Y'Y``. Only lower triangles of the symmetric matrices are referenced, so
+    the graph computes only those.
+    """
+    Q = ca.tril2symm(ca.tril(H + ca.mtimes(FG.T, ca.mtimes(P, FG))))
+    C = _cholesky(Q[nz:, nz:] + ca.diag(D))
+    Y = ca.solve(C, Q[nz:, :nz])
+    return ca.tril2symm(ca.tril(Q[:nz, :nz] - ca.mtimes(Y.T, Y))), C, Y
+
+
+def _sweep_back(pv: ca.SX, C: ca.SX, Y: ca.SX, FG: ca.SX, b: ca.SX, nz: int):
+    """Backward sweep of a right-hand side: ``w = C^{-1} (b_k - G_k'pv)``,
+    ``pv <- F_k'pv + Y'w`` (from ``pv = 0`` after the last stage)."""
+    v = ca.mtimes(FG.T, pv)
+    w = ca.solve(C, b - v[nz:])
+    return v[:nz] + ca.mtimes(Y.T, w), w
+
+
+def _sweep_fwd(z: ca.SX, C: ca.SX, Y: ca.SX, w: ca.SX, FG: ca.SX):
+    """Forward sweep: ``u_k = C^{-T} (w_k - Y dz_k)``, ``dz_{k+1} = F_k dz_k + G_k u_k``
+    (from ``dz_0 = 0``)."""
+    u = ca.solve(C.T, w - ca.mtimes(Y, z))
+    return u, ca.mtimes(FG, ca.vertcat(z, u))
 
 
 def _cholesky(A: ca.SX) -> ca.SX:
