@@ -16,7 +16,7 @@ import click
 
 from epo_casadi.errors import SpecError
 
-KINDS = ("epo", "sc", "vlstm")
+KINDS = ("epo", "sc", "vlstm", "tgl")
 SPLITS = ("train", "val", "test")
 
 
@@ -63,7 +63,8 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     type=click.Choice(KINDS),
     default="epo",
     show_default=True,
-    help="epo (ours), sc (V-LSTM + SC) or vlstm (V-LSTM marginal).",
+    help="epo (ours), sc (+ SC), vlstm (marginal) or tgl (+ TGL); the backbone: "
+    "--set backbone=vlstm|vibes|hivt.",
 )
 @click.option(
     "--data",

@@ -47,7 +47,7 @@ __all__ = [
     "predict",
 ]
 
-BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES"}
+BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
 
 
 def method_label(cfg: ModelConfig | None) -> str:
@@ -60,7 +60,7 @@ def method_label(cfg: ModelConfig | None) -> str:
     if cfg is None:
         return "CV"
     b = BACKBONES.get(cfg.backbone, cfg.backbone)
-    label = {"epo": f"{b} + Ours", "sc": f"{b} + SC", "vlstm": b}[cfg.kind]
+    label = {"epo": f"{b} + Ours", "sc": f"{b} + SC", "vlstm": b, "tgl": f"{b} + TGL"}[cfg.kind]
     if cfg.kind == "epo":
         if not cfg.learned_init:
             label += " (zero init)"

@@ -20,7 +20,9 @@ Encoders (paper App. F.1): every agent's history is a polyline of vectors
 through a PointNet-like encoder (3 layers, width 64, max-pool); a global interaction
 graph of width 128 updates the agent features with one attention layer over agents
 and lanes (``backbone="vlstm"``) or with the two-stage map-then-agent attention
-(``backbone="vibes"``).
+(``backbone="vibes"``); HiVT-M (``backbone="hivt"``) encodes each history with a
+transformer in the agent's own frame. The encoders live in :mod:`learning.backbones`.
+``"tgl"`` (+ TGL, a convex QP layer on OSQP) is in :mod:`learning.tgl`.
 
 Predictors (:func:`build_model`):
 
@@ -55,6 +57,7 @@ from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
+from . import backbones as _backbones
 from .bridge import GameRollout
 
 GOAL_DECODERS = ("given", "candidates", "regress")
@@ -77,9 +80,9 @@ __all__ = [
 class ModelConfig:
     """Architecture and layer settings (defaults: paper App. F.1, F.3)."""
 
-    kind: str = "epo"  #: "epo" (ours), "sc" (V-LSTM + SC), "vlstm" (V-LSTM marginal)
+    kind: str = "epo"  #: "epo" (ours), "sc" (+ SC), "vlstm" (marginal), "tgl" (+ TGL)
     modes: int = 2  #: M joint modes (RPI: 2)
-    backbone: str = "vlstm"  #: "vlstm" (one attention layer) or "vibes" (map-then-agent attention)
+    backbone: str = "vlstm"  #: "vlstm", "vibes" or "hivt" (HiVT-M): learning.backbones
     hist_width: int = 64  #: LSTM width
     hist_layers: int = 3  #: LSTM depth
     lane_width: int = 64  #: PointNet lane encoder width (3 layers)
@@ -98,10 +101,16 @@ class ModelConfig:
     goal_range: float = 5.0  #: radius in metres of the outermost candidate ring
 
     def __post_init__(self):
-        if self.kind not in ("epo", "sc", "vlstm"):
-            raise SpecError("model.kind", f"expected 'epo', 'sc' or 'vlstm', got {self.kind!r}")
-        if self.backbone not in ("vlstm", "vibes"):
-            raise SpecError("model.backbone", f"expected 'vlstm' or 'vibes', got {self.backbone!r}")
+        if self.kind not in ("epo", "sc", "vlstm", "tgl"):
+            raise SpecError(
+                "model.kind", f"expected 'epo', 'sc', 'vlstm' or 'tgl', got {self.kind!r}"
+            )
+        if self.backbone not in _backbones.BACKBONES:
+            raise SpecError(
+                "model.backbone",
+                f"expected one of {', '.join(map(repr, _backbones.BACKBONES))}, "
+                f"got {self.backbone!r}",
+            )
         if self.backward not in ("unrolled", "implicit"):
             raise SpecError(
                 "model.backward", f"expected 'unrolled' or 'implicit', got {self.backward!r}"
@@ -134,6 +143,11 @@ class ModelConfig:
                 "model.heads",
                 f"expected a divisor of global_width {self.global_width}, got {self.heads}",
             )
+        if self.backbone == "hivt" and self.hist_width % self.heads:
+            raise SpecError(
+                "model.heads",
+                f"expected a divisor of hist_width {self.hist_width} (HiVT-M), got {self.heads}",
+            )
         for k in ("step_size", "damping", "goal_range"):
             check_number(f"model.{k}", getattr(self, k), lo=0, lo_open=True)
         for k in ("learned_init", "goal_features"):
@@ -156,58 +170,8 @@ def mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) ->
     return nn.Sequential(*mods)
 
 
-class Encoder(nn.Module):
-    """History LSTM + PointNet lanes + global interaction graph -> agent features ``(B, N, W)``."""
-
-    def __init__(self, cfg: ModelConfig):
-        super().__init__()
-        self.cfg = cfg
-        self.lstm = nn.LSTM(5, cfg.hist_width, num_layers=cfg.hist_layers, batch_first=True)
-        self.lane = mlp(4, cfg.lane_width, cfg.lane_width, norm="layer")
-        self.agent_proj = nn.Linear(cfg.hist_width, cfg.global_width)
-        self.lane_proj = nn.Linear(cfg.lane_width, cfg.global_width)
-        W, h = cfg.global_width, cfg.heads
-        self.attn = nn.MultiheadAttention(W, h, batch_first=True)
-        self.norm = nn.LayerNorm(W)
-        if cfg.backbone == "vibes":
-            self.attn2 = nn.MultiheadAttention(W, h, batch_first=True)
-            self.norm2 = nn.LayerNorm(W)
-
-    def forward(self, scene: dict) -> torch.Tensor:
-        hist = scene["history"][..., :2]  # (B, H+1, N, 2)
-        B, T1, N, _ = hist.shape
-        origin = hist[:, -1:].mean(dim=2, keepdim=True)  # scene-centred coordinates
-        h = hist - origin
-        vec = torch.cat([h[:, :-1], h[:, 1:]], dim=-1)  # (B, H, N, 4)
-        t = torch.linspace(-1, 0, T1 - 1, dtype=h.dtype, device=h.device)[
-            None, :, None, None
-        ].expand(B, -1, N, 1)
-        seq = torch.cat([vec, t], -1).permute(0, 2, 1, 3).reshape(B * N, T1 - 1, 5)
-        _, (hn, _) = self.lstm(seq)
-        z = self.agent_proj(hn[-1].reshape(B, N, -1))  # (B, N, W)
-        lanes = scene.get("lanes")
-        if lanes is not None:
-            lanes = lanes - origin  # (B, 1, 1, 2) against (B, L, P, 2)
-            lv = torch.cat([lanes[:, :, :-1], lanes[:, :, 1:]], -1)  # (B, L, P-1, 4)
-            lz = self.lane_proj(self.lane(lv).max(dim=2).values)  # (B, L, W)
-            lmask = scene.get("lanes_mask")
-        else:
-            lz, lmask = z[:, :0], None
-        if self.cfg.backbone == "vlstm":
-            kv = torch.cat([z, lz], 1)
-            pad = None
-            if lmask is not None:
-                pad = torch.cat(
-                    [torch.zeros(B, N, dtype=torch.bool, device=z.device), ~lmask.bool()], 1
-                )
-            out, _ = self.attn(z, kv, kv, key_padding_mask=pad)
-            return self.norm(z + out)
-        # vibes: agents attend to the map, then to each other
-        if lz.shape[1]:
-            out, _ = self.attn(z, lz, lz, key_padding_mask=None if lmask is None else ~lmask.bool())
-            z = self.norm(z + out)
-        out, _ = self.attn2(z, z, z)
-        return self.norm2(z + out)
+# The observation encoders (V-LSTM, VIBES, HiVT-M) live in learning.backbones.
+Encoder = _backbones.Encoder
 
 
 def goal_candidates(scene: dict, cfg: ModelConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -518,6 +482,10 @@ class VLSTMModel(nn.Module):
 
 def build_model(cfg: ModelConfig, game: PotentialGame) -> nn.Module:
     """The predictor named by ``cfg.kind`` for ``game`` (its agents, horizon and parameters)."""
+    if cfg.kind == "tgl":  # learning.tgl imports this module
+        from .tgl import TGLModel
+
+        return TGLModel(cfg, game)
     return {"epo": EPOModel, "sc": SCModel, "vlstm": VLSTMModel}[cfg.kind](cfg, game)
 
 

@@ -91,6 +91,7 @@ PAPER_LOSS_WEIGHTS = {
     "epo": LossWeights(1.0, 0.1, 0.1),
     "sc": LossWeights(1.0, 0.0, 1.0),
     "vlstm": LossWeights(1.0, 0.0, 1.0),
+    "tgl": LossWeights(1.0, 0.0, 1.0),  # scene loss, as + SC (learning.tgl)
 }
 #: settings that may change when a run is resumed
 RESUMABLE_CHANGES = ("epochs", "checkpoint_steps", "eval_batch_size")
