@@ -1,5 +1,17 @@
 """RPI: simulated robot-pedestrian interaction, multi-modal demonstrations (paper App. E.1).
 
+Two ground truths (:attr:`RPIRecipe.ground_truth`), both recorded in the manifest
+    ``"peters"`` (default): the general iLQ game of Peters et al. (2020) that the paper's
+    RPI set was built with (:mod:`scenarios.rpi_peters`: unicycles starting at rest on the
+    3 m circle, 10 s horizon ``K = game_horizon = 100``, the reference's costs, solves
+    closer than 0.75 m dropped, DBSCAN modes; the proximity weight is drawn per main
+    game). Samples are cut only at steps ``k >= H`` of the executed main mode, so every
+    history is real (``history_valid`` all true); the future is the first ``T = horizon``
+    (40) steps of the subgame modes. The model's game (:attr:`RPIScenario.game`) stays the
+    App. F.3 game below at horizon ``T``.
+    ``"potential"``: the recipe described in the rest of this docstring (the paper's own
+    potential game as ground truth); its datasets are unchanged by the Peters recipe.
+
 Scene (positions in metres, the fixed world frame of the paper; agent order
 ``[robot, pedestrian]``, both extended unicycles ``(x, y, v, theta)`` / ``(a, omega)``)
     The robot starts at :attr:`RPIRecipe.robot_start` and goes to
@@ -37,9 +49,10 @@ Main game, subgames, samples (one work unit = one main game, see :mod:`scenarios
        state), the ``M = 2`` joint futures of the subgame over ``T = 40`` steps (4 s), their
        controls and shares, the goals and the full parameter vector of the subgame.
 
-History before the start
+History before the start (potential ground truth)
     Steps before ``k = 0`` do not exist in a main game; they are filled by a constant-
-    velocity backward extrapolation of ``x_0`` and marked ``False`` in ``history_valid``.
+    velocity backward extrapolation of ``x_0`` and marked ``False`` in ``history_valid``
+    (measured: 74 % of 389 samples have such a step, docs/rpi.md). The Peters ground truth has none.
 
 One mode only
     When clustering finds a single mode, slot 1 repeats mode 0 with ``mode_valid =
@@ -100,10 +113,22 @@ from epo_casadi.errors import SpecError, check_number
 
 from .dataset import FieldSpec, Scenario
 
-__all__ = ["RPIRecipe", "RPIScenario", "MainGameConfig", "Mode", "SAMPLES_PER_GAME"]
+__all__ = [
+    "RPIRecipe",
+    "RPIScenario",
+    "MainGameConfig",
+    "Mode",
+    "GROUND_TRUTHS",
+    "SAMPLES_PER_GAME",
+    "SAMPLES_PER_GAME_BY_TRUTH",
+]
 
-#: measured mean samples per main game of the default recipe (docs/rpi.md)
+#: measured mean samples per main game of the potential recipe (docs/rpi.md)
 SAMPLES_PER_GAME = 30.0
+#: measured mean samples per main game of each ground truth (docs/rpi.md)
+SAMPLES_PER_GAME_BY_TRUTH = {"potential": SAMPLES_PER_GAME, "peters": 70.0}
+#: samples of the paper's RPI set (47,822 / 6,228 / 6,228 train / val / test)
+PAPER_SAMPLES = 60_338
 AGENTS = ("robot", "pedestrian")
 
 
@@ -125,13 +150,58 @@ def _pair(name, v, positive=False, ordered=False):
     return t
 
 
+#: the ground truths a recipe can generate (module docstring)
+GROUND_TRUTHS = ("peters", "potential")
+
+#: defaults of the fields that depend on the ground truth (``None`` in the dataclass)
+_TRUTH_DEFAULTS: dict[str, dict[str, Any]] = {
+    "potential": dict(
+        main_games=2000, speed0=(1.0, 1.0), goal_jitter=30.0, n_samples=8, max_iter=30
+    ),
+    "peters": dict(
+        main_games=math.ceil(PAPER_SAMPLES / SAMPLES_PER_GAME_BY_TRUTH["peters"]),
+        speed0=(0.0, 0.0),
+        goal_jitter=0.0,
+        n_samples=100,
+        max_iter=100,
+    ),
+}
+#: fields of the Peters ground truth only (refused with ``ground_truth="potential"``)
+_PETERS_DEFAULTS: dict[str, Any] = dict(
+    game_horizon=100,
+    sub_samples=8,
+    control_cost=10.0,
+    speed_cost=30.0,
+    bound_cost=50.0,
+    turn_rate_bound=10.0,
+    acceleration_bound=9.81,
+    speed_bounds=(-0.05, 2.0),
+    proximity_radius=1.5,
+    proximity_weight=(10.0, 50.0),
+    goal_cost=300.0,
+    goal_steps=2,
+    min_distance=0.75,
+    dbscan_eps=10.0,
+    dbscan_min_points=2,
+    ilq_tol=1e-2,
+)
+
+
 @dataclass(frozen=True)
 class RPIRecipe:
-    """Everything that defines an RPI dataset (with the seed). Frozen; unknown keys fail."""
+    """Everything that defines an RPI dataset (with the seed). Frozen; unknown keys fail.
 
-    main_games: int = 2000  #: work units; ~30 samples each (2000 -> ~60k, the paper's order)
+    ``ground_truth`` chooses the game that makes the demonstrations (module docstring):
+    ``"peters"`` (default) or ``"potential"`` (the recipe before 2026-11-30). Fields left
+    ``None`` take that ground truth's default; the Peters fields (from ``game_horizon``
+    on) are refused with ``"potential"``. The App. F.3 fields (``vmax`` .. ``collision_margin``)
+    define the potential ground truth and, with either ground truth, the model's game
+    (:attr:`RPIScenario.game`).
+    """
+
+    main_games: int | None = None  #: work units (~60k samples: potential 2000, Peters 862)
     games_per_shard: int = 20  #: main games per HDF5 shard (resume granularity)
-    horizon: int = 40  #: K, steps of the main game, the subgames and the predicted future
+    horizon: int = 40  #: T, predicted future steps (and K of the potential games / model game)
     history: int = 18  #: H, past steps in a sample (plus the current state)
     modes: int = 2  #: M, joint futures per sample
     dt: float = 0.1  #: step length (s)
@@ -140,8 +210,8 @@ class RPIRecipe:
     robot_start: tuple[float, float] = (-3.0, 0.0)  #: fixed robot start (m)
     robot_goal: tuple[float, float] = (3.0, 0.0)  #: fixed robot goal (m)
     exclude: float = 45.0  #: no pedestrian start within this angle (deg) of the robot start
-    goal_jitter: float = 30.0  #: pedestrian goal angle = start + 180 + U(-j, j) (deg)
-    speed0: tuple[float, float] = (1.0, 1.0)  #: initial speeds (robot, pedestrian) (m/s)
+    goal_jitter: float | None = None  #: ped. goal angle = start + 180 + U(-j, j) (deg); 30 / 0
+    speed0: tuple[float, float] | None = None  #: initial speeds (robot, ped.) (m/s); 1 / 0
     vmax: tuple[float, float] = (2.0, 1.6)  #: velocity upper bounds (robot, pedestrian) (m/s)
     amax: float = 2.0  #: |acceleration| bound (m/s^2)
     wmax: float = 1.5  #: |turn rate| bound (rad/s)
@@ -153,14 +223,52 @@ class RPIRecipe:
     collision_weight: tuple[float, float] = (5.0, 30.0)  #: U(lo, hi) per main game
     collision_margin: float = 0.15  #: safety distance (m) added to 2 r: the soft penalty then keeps the agents >= 2 r apart
     solver: str = "ilq"  #: multimodal engine: "ilq" or "lm"
-    n_samples: int = 8  #: solves per (sub)game, from sampled initial strategies
+    n_samples: int | None = None  #: solves per main game (potential: and subgame); 8 / 100
     warm_start: int = 2  #: of those, initial strategies from the previous subgame's modes
-    max_iter: int = 30  #: iteration cap of each solve (a solve that hits it is dropped)
+    max_iter: int | None = None  #: iteration cap of each solve (hitting it drops it); 30 / 100
     compiled: bool = True  #: iLQ Riccati recursion as generated C (needs a C compiler)
     max_subgames: int | None = None  #: cap of subgames per executed mode (None: until passing)
     split: tuple[float, float, float] = (0.8, 0.1, 0.1)  #: train/val/test fractions of main games
+    ground_truth: str = "peters"  #: "peters" (general iLQ game, DBSCAN) or "potential"
+    # ---- Peters ground truth only (None: the default in brackets; units of the reference)
+    game_horizon: int | None = None  #: K of the main game and subgames [100: 10 s]
+    sub_samples: int | None = None  #: solves per subgame [8]
+    control_cost: float | None = None  #: 1/2 c |u|^2 [10]
+    speed_cost: float | None = None  #: 1/2 c v^2 [30]
+    bound_cost: float | None = None  #: c gap^2 of every soft bound [50]
+    turn_rate_bound: float | None = None  #: |omega| soft bound (deg/s) [10]
+    acceleration_bound: float | None = None  #: |a| soft bound (m/s^2) [9.81]
+    speed_bounds: tuple[float, float] | None = None  #: v soft bounds (m/s) [(-0.05, 2)]
+    proximity_radius: float | None = None  #: proximity cost while d < this (m) [1.5]
+    proximity_weight: tuple[float, float] | None = (
+        None  #: w (d - R)^2, U(lo, hi) per main game [(10, 50)]
+    )
+    goal_cost: float | None = None  #: 1/2 c |(x, y, theta) - goal|^2 [300]
+    goal_steps: int | None = None  #: last states with the goal cost (t >= T - 1.5 dt) [2]
+    min_distance: float | None = None  #: drop solves closer than this (m) [0.75]
+    dbscan_eps: float | None = None  #: DBSCAN radius on squared state distances [10]
+    dbscan_min_points: int | None = None  #: DBSCAN core points (itself included) [2]
+    ilq_tol: float | None = None  #: iLQ stops (converged) at max |a| <= this [1e-2]
 
     def __post_init__(self):
+        if self.ground_truth not in GROUND_TRUTHS:
+            raise SpecError(
+                "rpi.ground_truth",
+                f"expected one of {list(GROUND_TRUTHS)}, got {self.ground_truth!r}",
+            )
+        peters = self.ground_truth == "peters"
+        for k, v in _TRUTH_DEFAULTS[self.ground_truth].items():
+            if getattr(self, k) is None:
+                object.__setattr__(self, k, v)
+        for k, v in _PETERS_DEFAULTS.items():
+            if not peters and getattr(self, k) is not None:
+                raise SpecError(
+                    f"rpi.{k}", "applies to ground_truth='peters' only, this recipe is 'potential'"
+                )
+            if peters and getattr(self, k) is None:
+                object.__setattr__(self, k, v)
+        if peters:
+            self._check_peters()
         _num("main_games", self.main_games, 3, integer=True)
         _num("games_per_shard", self.games_per_shard, 1, integer=True)
         _num("horizon", self.horizon, 2, integer=True)
@@ -202,21 +310,55 @@ class RPIRecipe:
             )
         object.__setattr__(self, "split", sp)
 
+    def _check_peters(self):
+        _num("game_horizon", self.game_horizon, self.horizon, integer=True)
+        _num("sub_samples", self.sub_samples, 1, integer=True)
+        _num("warm_start", self.warm_start, 0, self.sub_samples, integer=True)
+        for k in ("control_cost", "speed_cost", "bound_cost", "goal_cost"):
+            _num(k, getattr(self, k), 0.0)
+        for k in ("turn_rate_bound", "acceleration_bound", "dbscan_eps", "ilq_tol"):
+            _num(k, getattr(self, k), 1e-12)
+        _num("proximity_radius", self.proximity_radius, 2 * self.radius)
+        _num("goal_steps", self.goal_steps, 1, self.game_horizon, integer=True)
+        _num("min_distance", self.min_distance, 0.0)
+        _num("dbscan_min_points", self.dbscan_min_points, 1, integer=True)
+        object.__setattr__(
+            self, "speed_bounds", _pair("speed_bounds", self.speed_bounds, ordered=True)
+        )
+        w = _pair("proximity_weight", self.proximity_weight, ordered=True)
+        if w[0] < 0:
+            raise SpecError("rpi.proximity_weight", f"expected weights >= 0, got {list(w)}")
+        object.__setattr__(self, "proximity_weight", w)
+        if self.solver != "ilq":
+            raise SpecError(
+                "rpi.solver", f"ground_truth='peters' is solved by 'ilq' only, got {self.solver!r}"
+            )
+
+    @property
+    def samples_per_game(self) -> float:
+        """Measured mean samples per main game of this ground truth (docs/rpi.md)."""
+        return SAMPLES_PER_GAME_BY_TRUTH[self.ground_truth]
+
     @classmethod
     def full(cls, **overrides) -> RPIRecipe:
-        """The full-size dataset: 2,000 main games, about 60k samples."""
+        """The full-size dataset: about 60k samples (the default ``main_games``: 2,000 for
+        the potential ground truth, ``ceil(60,338 / 70) = 862`` for Peters)."""
         return cls(**overrides)
 
     @classmethod
     def for_samples(cls, samples: int, **overrides) -> RPIRecipe:
-        """About ``samples`` samples: ``ceil(samples / 30)`` main games (at least 3).
+        """About ``samples`` samples: ``ceil(samples / per)`` main games (at least 3), ``per``
+        the measured samples per main game of the ground truth (:data:`SAMPLES_PER_GAME_BY_TRUTH`:
+        potential 30, Peters 70).
 
         The exact count depends on the games (see the module docstring); the manifest
         records it. Shards shrink so that a small set still has a few per split.
         """
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise SpecError("samples", f"expected an integer >= 1, got {samples!r}")
-        games = max(3, math.ceil(samples / SAMPLES_PER_GAME))
+        truth = overrides.get("ground_truth", "peters")
+        per = SAMPLES_PER_GAME_BY_TRUTH.get(truth, SAMPLES_PER_GAME)
+        games = max(3, math.ceil(samples / per))
         base = dict(
             main_games=games,
             games_per_shard=max(1, min(cls.games_per_shard, math.ceil(games / 30))),
@@ -226,6 +368,8 @@ class RPIRecipe:
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        if self.ground_truth != "peters":
+            d = {k: v for k, v in d.items() if k not in _PETERS_DEFAULTS}
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
@@ -298,7 +442,7 @@ class RPIScenario(Scenario):
         return self.recipe.split
 
     def expected_samples(self) -> int:
-        return int(self.recipe.main_games * SAMPLES_PER_GAME)
+        return int(self.recipe.main_games * self.recipe.samples_per_game)
 
     def schema(self) -> dict[str, FieldSpec]:
         r = self.recipe
@@ -330,7 +474,7 @@ class RPIScenario(Scenario):
         }
 
     def meta(self) -> dict:
-        g = self.game
+        g = self.truth_game
         return {
             "agents": list(AGENTS),
             "state": ["x", "y", "v", "theta"],
@@ -370,11 +514,25 @@ class RPIScenario(Scenario):
 
     @cached_property
     def game(self) -> PotentialGame:
-        """The game (built once per process; configurations differ only in ``p``)."""
+        """The model's game: App. F.3 features at horizon ``T`` (built once per process).
+
+        With ``ground_truth="potential"`` it is also the ground truth's game; learning
+        builds a dataset's game from the manifest recipe through this property.
+        """
         return PotentialGame(self.game_spec())
 
+    @cached_property
+    def truth_game(self) -> PotentialGame:
+        """The game the demonstrations are solved in (:attr:`game` for ``"potential"``,
+        :func:`scenarios.rpi_peters.peters_game_spec` for ``"peters"``)."""
+        if self.recipe.ground_truth == "potential":
+            return self.game
+        from .rpi_peters import peters_game_spec
+
+        return PotentialGame(peters_game_spec(self.recipe, AGENTS))
+
     def _n_params(self) -> int:
-        return self.game.n_p
+        return self.truth_game.n_p
 
     def sample_config(self, index: int, rng: np.random.Generator) -> MainGameConfig:
         """Pedestrian start/goal angles and the collision weight of main game ``index``."""
@@ -384,7 +542,8 @@ class RPIScenario(Scenario):
         ex = math.radians(r.exclude)
         phi = robot_angle + ex + rng.uniform(0.0, 2 * math.pi - 2 * ex)
         goal = phi + math.pi + rng.uniform(-1.0, 1.0) * math.radians(r.goal_jitter)
-        wc = rng.uniform(*r.collision_weight)
+        peters = r.ground_truth == "peters"
+        wc = rng.uniform(*(r.proximity_weight if peters else r.collision_weight))
         ps = r.circle * np.array([math.cos(phi), math.sin(phi)])
         pg = r.circle * np.array([math.cos(goal), math.sin(goal)])
         x0 = []
@@ -397,14 +556,21 @@ class RPIScenario(Scenario):
         )
 
     def params(self, config: MainGameConfig, x: np.ndarray | None = None) -> np.ndarray:
-        """Parameter vector of the game from state ``x`` (``(N, 4)``; default: start)."""
+        """Parameter vector of the ground-truth game (:attr:`truth_game`) from state ``x``
+        (``(N, 4)``; default: start). Peters: the goal heading of each agent is its
+        initial heading (start to goal) and the proximity weight ``sqrt(2 w)``."""
         x = config.x0 if x is None else np.asarray(x).reshape(2, 4)
         vals = {}
         for n, a in enumerate(AGENTS):
             vals[f"x0.{a}"] = x[n]
             vals[f"goal.{a}"] = config.goals[n]
-        vals["w.robot-pedestrian.collision"] = [config.collision_weight]
-        return self.game.params.pack(vals)
+        if self.recipe.ground_truth == "peters":
+            for n, a in enumerate(AGENTS):
+                vals[f"goal_heading.{a}"] = [config.x0[n, 3]]
+            vals["w.robot-pedestrian.proximity"] = [math.sqrt(2 * config.collision_weight)]
+        else:
+            vals["w.robot-pedestrian.collision"] = [config.collision_weight]
+        return self.truth_game.params.pack(vals)
 
     def solver_options(self):
         """Options of every solve (:class:`solvers.ilq.ILQOptions` or ``LMOptions``)."""
@@ -412,10 +578,42 @@ class RPIScenario(Scenario):
         if r.solver == "ilq":
             from solvers.ilq import ILQOptions
 
+            if r.ground_truth == "peters":
+                return ILQOptions(max_iter=r.max_iter, tol=r.ilq_tol, compiled=r.compiled)
             return ILQOptions(max_iter=r.max_iter, compiled=r.compiled)
         from solvers.lm import LMOptions
 
         return LMOptions(steps=r.max_iter, threads=1)
+
+    def solve_peters_modes(
+        self, p: np.ndarray, seed: int, warm: list[Mode] | None = None, shift: int = 1
+    ) -> list[Mode]:
+        """Peters ground truth: modes of :attr:`truth_game` at ``p``, sorted by share.
+
+        ``n_samples`` solves for a main game (``warm`` is None), ``sub_samples`` for a
+        subgame, of which the first ``min(warm_start, len(warm))`` start from ``warm``'s
+        controls shifted by ``shift`` steps (last control repeated); the others from
+        :func:`solvers.multimodal.sinusoid_sampler`. Dropping and DBSCAN as in
+        :func:`scenarios.rpi_peters.solve_peters_modes`. Deterministic for a ``seed``.
+        """
+        from solvers.multimodal import sinusoid_sampler
+
+        from .rpi_peters import solve_peters_modes
+
+        r = self.recipe
+        g = self.truth_game
+        n = r.n_samples if warm is None else r.sub_samples
+        U0 = sinusoid_sampler(g, p, n, np.random.default_rng(int(seed)))
+        for j, m in enumerate((warm or [])[: r.warm_start]):
+            parts = [
+                np.concatenate([u[shift:], np.repeat(u[-1:], shift, axis=0)])
+                for u in g.split_controls(m.controls)
+            ]
+            U0[j] = g.join_controls(parts)
+        modes, _ = solve_peters_modes(
+            g, p, U0, self.solver_options(), r.min_distance, r.dbscan_eps, r.dbscan_min_points
+        )
+        return [Mode(m.controls, m.states, m.share) for m in modes]
 
     def solve_modes(self, p: np.ndarray, seed: int, warm: list[Mode] | None = None) -> list[Mode]:
         """Multi-modal solve of the game at ``p``: modes sorted by share (largest first).
@@ -482,6 +680,8 @@ class RPIScenario(Scenario):
     # ---- one work unit -------------------------------------------------------------------
     def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
         """All samples of main game ``index`` (see the module docstring)."""
+        if self.recipe.ground_truth == "peters":
+            return self._run_unit_peters(index, seed)
         r = self.recipe
         g = self.game
         K, H, M = r.horizon, r.history, r.modes
@@ -525,9 +725,46 @@ class RPIScenario(Scenario):
                 )
         return self._stack(rows)
 
+    def _run_unit_peters(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
+        """Peters ground truth: samples only at steps ``k >= H`` (every history is real)."""
+        r = self.recipe
+        g = self.truth_game
+        K, H, M = r.game_horizon, r.history, r.modes
+        cfg_ss, solve_ss = seed.spawn(2)
+        cfg = self.sample_config(index, np.random.default_rng(cfg_ss))
+        seeds = np.random.default_rng(solve_ss)
+
+        def draw():
+            return int(seeds.integers(0, 2**31 - 1))
+
+        main_modes = self.solve_peters_modes(self.params(cfg), draw())[:M]
+        rows: list[dict[str, Any]] = []
+        valid = np.ones(H + 1, bool)
+        for mi, mm in enumerate(main_modes):
+            X = np.stack(g.split_states(mm.states), axis=1)  # (K+1, N, 4)
+            prev, k_prev = [mm, *(o for o in main_modes if o is not mm)], 0
+            n_sub = 0
+            for k in range(K):
+                if self.passed(X[k]) or (r.max_subgames is not None and n_sub >= r.max_subgames):
+                    break
+                if k < H:  # not H + 1 real states yet: no sample
+                    continue
+                p_sub = self.params(cfg, X[k])
+                sub = self.solve_peters_modes(p_sub, draw(), warm=prev, shift=k - k_prev)
+                n_sub += 1
+                if not sub:
+                    continue
+                prev, k_prev = sub, k
+                rows.append(
+                    self._sample(
+                        cfg, mi, mm.share, k, X[k - H : k + 1], valid, sub[:M], p_sub, X[k + 1 :]
+                    )
+                )
+        return self._stack(rows)
+
     def _sample(self, cfg, main_mode, main_share, k, hist, hist_valid, modes, p, executed):
         """One sample; ``executed`` ``(K-k, N, nx)`` is what the agents do next (main mode)."""
-        g = self.game
+        g = self.truth_game
         M, T = self.recipe.modes, self.recipe.horizon
         fut = np.zeros((M, 2, T, 4))
         ctl = np.zeros((M, 2, T, 2))
@@ -535,8 +772,8 @@ class RPIScenario(Scenario):
         valid = np.zeros(M, bool)
         for j in range(M):
             m = modes[min(j, len(modes) - 1)]
-            fut[j] = np.stack([s[1:] for s in g.split_states(m.states)])
-            ctl[j] = np.stack(g.split_controls(m.controls))
+            fut[j] = np.stack([s[1 : T + 1] for s in g.split_states(m.states)])
+            ctl[j] = np.stack([u[:T] for u in g.split_controls(m.controls)])
             if j < len(modes):
                 share[j], valid[j] = m.share, True
         # Ground truth: the valid mode closest (mean position error over the steps both

@@ -32,7 +32,7 @@ from scenarios.rpi import RPIRecipe, RPIScenario
 #: tiny networks for fast tests
 TINY = dict(hist_width=8, hist_layers=1, lane_width=8, global_width=16, heads=2, dec_width=16)
 #: a short game: horizon 10 (the layer is 4x cheaper than at 40), history 4
-RECIPE = dict(main_games=3, games_per_shard=1, horizon=10, history=4)
+RECIPE = dict(main_games=3, games_per_shard=1, horizon=10, history=4, ground_truth="potential")
 
 
 class SyntheticRPI(RPIScenario):

@@ -21,7 +21,7 @@ SMALL = dict(
     seed=0,
     workers=1,
     progress=False,
-    recipe_overrides=dict(max_subgames=10, compiled=False),
+    recipe_overrides=dict(max_subgames=10, compiled=False, ground_truth="potential"),
     model_overrides=TINY,
 )
 

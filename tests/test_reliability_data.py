@@ -291,7 +291,7 @@ def test_killed_generate_leaves_no_processes_and_resumes(tmp_path):
     args = [sys.executable, "-m", "scenarios.cli", "generate", "rpi", "--out", out,
             "--samples", "450", "--workers", "2", "--no-progress", "--set=games_per_shard=1",
             "--set=history=4", "--set=n_samples=4", "--set=max_subgames=3",
-            "--set=compiled=false"]  # fmt: skip
+            "--set=compiled=false", "--set=ground_truth=potential"]  # fmt: skip
     args = [str(a) for a in args]
     kept = 0
     for sig in (signal.SIGKILL, signal.SIGTERM):

@@ -14,7 +14,15 @@ from scenarios.cli import main
 from scenarios.rpi import AGENTS, SAMPLES_PER_GAME, RPIRecipe, RPIScenario
 
 # a tiny recipe: short horizon and history, few solves, at most 3 subgames per main mode
-TINY = dict(main_games=3, games_per_shard=1, history=4, n_samples=4, max_subgames=3, compiled=False)
+TINY = dict(
+    main_games=3,
+    games_per_shard=1,
+    history=4,
+    n_samples=4,
+    max_subgames=3,
+    compiled=False,
+    ground_truth="potential",  # this file tests the potential ground truth (rpi_peters: Peters)
+)
 TINY_SET = [f"--set={k}={v}" for k, v in TINY.items() if k != "main_games"]
 
 
@@ -24,25 +32,25 @@ def tiny():
 
 
 def test_recipe_defaults_and_validation():
-    r = RPIRecipe.full()
+    r = RPIRecipe.full(ground_truth="potential")
     assert (r.horizon, r.history, r.modes, r.dt, r.radius, r.circle) == (40, 18, 2, 0.1, 0.25, 3.0)
     assert r.main_games * SAMPLES_PER_GAME >= 60_000 and r.split == (0.8, 0.1, 0.1)
     assert RPIRecipe.from_dict(r.to_dict()) == r
     json.dumps(r.to_dict())
-    small = RPIRecipe.for_samples(600)
+    small = RPIRecipe.for_samples(600, ground_truth="potential")
     assert small.main_games == 20 and small.games_per_shard == 1
-    assert RPIRecipe.for_samples(60_000).games_per_shard == 20
-    assert RPIRecipe.for_samples(1).main_games == 3
+    assert RPIRecipe.for_samples(60_000, ground_truth="potential").games_per_shard == 20
+    assert RPIRecipe.for_samples(1, ground_truth="potential").main_games == 3
     with pytest.raises(SpecError, match=r"rpi: unknown recipe field\(s\) \['horizn'\]"):
         RPIRecipe.from_dict({"horizn": 3})
     with pytest.raises(SpecError, match="rpi.main_games"):
-        RPIRecipe(main_games=2)
+        RPIRecipe(main_games=2, ground_truth="potential")
     with pytest.raises(SpecError, match="rpi.solver"):
-        RPIRecipe(solver="newton")
+        RPIRecipe(solver="newton", ground_truth="potential")
     with pytest.raises(SpecError, match="rpi.collision_weight"):
-        RPIRecipe(collision_weight=(5.0, 1.0))
+        RPIRecipe(collision_weight=(5.0, 1.0), ground_truth="potential")
     with pytest.raises(SpecError, match="rpi.split"):
-        RPIRecipe(split=(0.5, 0.1, 0.1))
+        RPIRecipe(split=(0.5, 0.1, 0.1), ground_truth="potential")
     with pytest.raises(SpecError, match="samples"):
         RPIRecipe.for_samples(0)
 

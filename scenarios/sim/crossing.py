@@ -59,7 +59,7 @@ from .common import (
 
 __all__ = ["CrossingOptions", "CrossingWorld"]
 
-_RPI = RPIRecipe()
+_RPI = RPIRecipe(ground_truth="potential")  # the scene of the potential recipe (moving starts)
 PED_TURN = 2.0  # rad/s, largest pedestrian turn rate
 PED_ACC = (-2.0, 1.0)  # m/s^2, pedestrian acceleration range
 PED_TAU = 0.25  # s, speed time constant
