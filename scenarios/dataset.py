@@ -541,7 +541,14 @@ def _planned(m: dict) -> dict[str, dict]:
 
 def _same_dataset(old: dict, new: dict) -> str | None:
     for key in ("scenario", "recipe", "seed", "n_units", "units_per_shard", "schema", "splits"):
-        if json.loads(json.dumps(old.get(key))) != json.loads(json.dumps(new.get(key))):
+        a, b = json.loads(json.dumps(old.get(key))), json.loads(json.dumps(new.get(key)))
+        if a != b:
+            if key == "recipe" and isinstance(a, dict) and isinstance(b, dict):
+                # name the recipe field that differs; a field that selects the kind of
+                # recipe (rpi's ground_truth) first, as it explains the others
+                for f in sorted(set(a) | set(b), key=lambda f: (f != "ground_truth", f)):
+                    if a.get(f) != b.get(f):
+                        return f"recipe field {f!r} ({a.get(f)!r} there, {b.get(f)!r} asked)"
             return key
     return None
 
