@@ -480,13 +480,19 @@ class VLSTMModel(nn.Module):
         return {"pos": pos, "marginal_logits": self.cls_dec(z)}  # (B, N, M)
 
 
+#: model kind -> class; modules that build on this one (learning.tgl) add their kind with
+#: :func:`register_model_kind` when imported (``import learning`` imports them all)
+MODEL_KINDS: dict[str, type[nn.Module]] = {"epo": EPOModel, "sc": SCModel, "vlstm": VLSTMModel}
+
+
+def register_model_kind(kind: str, cls: type[nn.Module]) -> None:
+    """Make :func:`build_model` build ``cls`` for ``ModelConfig(kind=kind)``."""
+    MODEL_KINDS[kind] = cls
+
+
 def build_model(cfg: ModelConfig, game: PotentialGame) -> nn.Module:
     """The predictor named by ``cfg.kind`` for ``game`` (its agents, horizon and parameters)."""
-    if cfg.kind == "tgl":  # learning.tgl imports this module
-        from .tgl import TGLModel
-
-        return TGLModel(cfg, game)
-    return {"epo": EPOModel, "sc": SCModel, "vlstm": VLSTMModel}[cfg.kind](cfg, game)
+    return MODEL_KINDS[cfg.kind](cfg, game)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -65,7 +65,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.features import AccelerationBound, Collision, TurnRateBound, VelocityBound
 from epo_casadi.game import PotentialGame
 
-from .models import _Base, mlp
+from .models import _Base, mlp, register_model_kind
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -574,3 +574,6 @@ class TGLModel(_Base):
             "vref": vref,
             "status": status,
         }
+
+
+register_model_kind("tgl", TGLModel)

@@ -288,8 +288,10 @@ def test_import_arrows_point_one_way():
                     mod = ".".join(base + ([node.module] if node.module else []))
                 else:
                     mod = node.module or ""
-                out.add(mod)
-                out.update(f"{mod}.{a.name}" for a in node.names)
+                subs = {f"{mod}.{a.name}" for a in node.names} & set(mods)
+                if len(subs) < len(node.names):  # a name defined in the module, not a submodule
+                    out.add(mod)
+                out.update(subs)
         edges[name] = {m for m in out if m in mods and m != name}
     both = sorted({tuple(sorted((a, b))) for a, bs in edges.items() for b in bs if a in edges[b]})
     assert both == []
