@@ -99,6 +99,12 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     click.echo(f"warning: {message}", err=True)
 
 
+def _command(argv: list[str] | None) -> str:
+    """The subcommand named on the command line (``"solve "``), or ``""``."""
+    args = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    return f"{args[0]} " if args and args[0] in COMMANDS else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: runs the CLI, turns toolkit errors into one-line messages."""
     shown = warnings.showwarning
@@ -108,6 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     except click.exceptions.Abort:
         click.echo("Aborted.", err=True)
         return 130
+    except click.UsageError as e:  # a bad option or argument: one line, like every input error
+        click.echo(f"error: {e.format_message()} (see 'epo {_command(argv)}--help')", err=True)
+        return 2
     except click.ClickException as e:
         e.show()
         return e.exit_code

@@ -108,7 +108,9 @@ def test_cli_train_evaluate_show(capsys, tmp_path):
     )
     assert rc == 0, err
     assert (
-        "| V-LSTM + Ours | 1 |" in out and "| CV | 1 |" in out and (tmp_path / "res.md").is_file()
+        "| V-LSTM + Ours | 1 |" in out
+        and "| CV | 1 |" in out
+        and (tmp_path / "res" / "results.md").is_file()
     )
     rc, out, err = run(capsys, "evaluate", "--model", "cv", "--data", data)
     assert rc == 0 and "| CV | 1 |" in out
