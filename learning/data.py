@@ -102,9 +102,16 @@ def _left_turn_game(recipe: dict) -> PotentialGame:
     return LeftTurnScenario(LeftTurnRecipe.from_dict(recipe)).game
 
 
+def _exid_game(recipe: dict) -> PotentialGame:
+    from scenarios.exid import ExidRecipe, ExidScenario
+
+    return ExidScenario(ExidRecipe.from_dict(recipe)).game
+
+
 GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {
     "rpi": _rpi_game,
     "left-turn": _left_turn_game,
+    "exid": _exid_game,
 }
 
 

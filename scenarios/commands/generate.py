@@ -228,3 +228,101 @@ def left_turn(out, episodes_per_geometry, workers, seed, engine, scheduler, over
         f"{len(rep.shards_written)} shard(s) written, {len(rep.shards_kept)} kept; "
         f"{rep.samples_written} samples in {rep.seconds:.1f} s ({rep.samples_per_second:.2f} samples/s)"
     )
+
+
+@generate.command("exid", short_help="Scenes of the exiD release layout (paper App. E, exiD).")
+@click.option(
+    "--raw",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Directory of the exiD release (data/NN_*.csv, maps/lanelet2/*.osm), or one made by "
+    "'epo generate highway-raw'.",
+)
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
+)
+@click.option(
+    "--workers", type=click.IntRange(min=1), default=None, help="Worker processes (default: cores)."
+)
+@click.option(
+    "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed (val split)."
+)
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a recipe field (repeatable), e.g. --set test_locations=[2] (docs/exid.md).",
+)
+@click.option(
+    "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
+)
+def exid(raw, out, workers, seed, overrides, progress):
+    """N = 4 scenes with a lane change, dt 0.2 s, 1.8 s history, 4 s future; test on its own map."""
+    from scenarios.dataset import check_output_dir, sigterm_as_interrupt
+    from scenarios.dataset import generate as run
+    from scenarios.exid import ExidScenario
+
+    kw = _parse_set(overrides)
+    try:
+        scenario = ExidScenario.from_raw(raw, **kw)
+    except TypeError as e:  # a value of the wrong type inside the recipe
+        raise SpecError("--set", str(e)) from None
+    check_output_dir(out)
+    with sigterm_as_interrupt():
+        rep = run(scenario, out, seed=seed, workers=workers or _cores(), progress=progress)
+    c = rep.counts
+    click.echo(
+        f"{out}: train {c['train']}, val {c['val']}, test {c['test']} samples; "
+        f"{len(rep.shards_written)} shard(s) written, {len(rep.shards_kept)} kept; "
+        f"{rep.samples_written} samples in {rep.seconds:.1f} s ({rep.samples_per_second:.2f} samples/s)"
+    )
+
+
+@generate.command("highway-raw", short_help="highway-env traffic written in the exiD layout.")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Output directory (data/ and maps/lanelet2/; finished recordings are kept).",
+)
+@click.option("--recordings", type=click.IntRange(min=1), default=8, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=1.0),
+    default=120.0,
+    show_default=True,
+    help="Recorded seconds per recording.",
+)
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a generator option (repeatable), e.g. --set locations=[0,1,2] (docs/exid.md).",
+)
+@click.option(
+    "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
+)
+def highway_raw(out, recordings, seed, duration, overrides, progress):
+    """Recordings round-robin over the locations (on- and off-ramps, 2 and 3 lanes)."""
+    from scenarios.highway import HighwayOptions, generate_raw
+    from scenarios.sim.common import build_options
+
+    kw = _parse_set(overrides)
+    kw.update(recordings=recordings, duration=duration)
+    try:
+        opts = build_options(HighwayOptions, "highway", kw)
+    except TypeError as e:
+        raise SpecError("--set", str(e)) from None
+    st = generate_raw(out, opts, seed=seed, progress=progress)
+    click.echo(
+        f"{out}: {st['recordings']} recordings ({st['written']} written: {st['tracks']} tracks, "
+        f"{st['rows']} rows, {st['crashes']} crashes removed) in {st['seconds']:.1f} s"
+    )

@@ -1,0 +1,1175 @@
+"""The exiD release layout: a reader for its recordings and lanelet2 maps, and the paper's
+sample extraction (App. E "exiD", App. F.3) into the toolkit's dataset format.
+
+Release layout (exiD v2, the levelXdata family shared with inD / rounD / uniD)
+    ``DIR/data/NN_tracks.csv``, ``NN_tracksMeta.csv``, ``NN_recordingMeta.csv`` per
+    recording ``NN`` (the three CSVs may also lie directly in ``DIR``), and one lanelet2
+    map per location, ``DIR/maps/lanelet2/<locationId>_<name>.osm`` (or ``<locationId>.osm``;
+    also looked for in ``DIR/maps`` and ``DIR``). The column names are those of the
+    format documentation of the levelXdata datasets (ika, RWTH Aachen: "inD/rounD/uniD
+    format 1.1", shared by exiD) and of ika's ``drone-dataset-tools`` reader
+    (``src/tracks_import.py``: ``read_tracks`` / ``read_tracks_meta`` /
+    ``read_recording_meta``); exiD adds the lane columns (``laneletId``,
+    ``latLaneCenterOffset``, ``laneWidth``, ``lonLaneletPos``, ... , where a vehicle on
+    two lanelets has ``"id1;id2"``). Columns read:
+
+    ``NN_tracks.csv`` (one row per track and frame): ``recordingId, trackId, frame,
+    xCenter, yCenter`` (m, local frame = UTM minus the recording's ``xUtmOrigin,
+    yUtmOrigin``), ``heading`` (deg, counter-clockwise from +x), ``width, length`` (m),
+    ``xVelocity, yVelocity`` (m/s), ``xAcceleration, yAcceleration`` (m/s^2),
+    ``lonVelocity, latVelocity, lonAcceleration, latAcceleration``; optional
+    ``laneletId`` (first id of a ``;`` list; empty or ``-1``: none; without the column
+    the lanelet is found on the map).
+    ``NN_tracksMeta.csv`` (one row per track): ``recordingId, trackId, initialFrame,
+    finalFrame, numFrames, width, length, class``.
+    ``NN_recordingMeta.csv`` (one row): ``recordingId, locationId, frameRate,
+    xUtmOrigin, yUtmOrigin``; optional ``speedLimit`` (m/s; ``-1`` or missing: none),
+    ``latLocation, lonLocation, duration, numTracks, ...``.
+
+    Every problem is a :class:`~scenarios.dataset.DatasetError` whose ``where`` is
+    ``<file>:<column>`` (a missing file or column, a non-numeric value with its line, an
+    empty value (a truncated file), a track whose row count differs from its
+    ``numFrames``, a frame rate that does not divide the sampling step).
+
+Maps: a light OSM parse, not the ``lanelet2`` package
+    ``lanelet2`` has wheels on PyPI (1.2.3, Linux x86-64 manylinux_2_31 only; none for
+    macOS or Windows) and brings a compiled Boost stack; what the extraction needs of a
+    map is small: every lanelet's left and right bound (``way`` s of ``node`` s), its
+    centre line (the mean of the bounds resampled to the same arc fractions), width,
+    speed limit, successors and left / right neighbours. That is ~150 lines of
+    ``xml.etree`` here, runs everywhere the toolkit runs, and writes back trivially for the
+    generator (:mod:`scenarios.highway`). Conventions of lanelet2's OSM format: a
+    ``relation`` with ``type=lanelet`` and members ``left`` / ``right`` (ways); node
+    positions from ``local_x`` / ``local_y`` tags when every node has them, else from
+    ``lat`` / ``lon`` projected to UTM (WGS84, the zone of the recording's
+    ``lonLocation`` or of the nodes, :func:`utm_from_latlon`) minus the recording's
+    ``xUtmOrigin`` / ``yUtmOrigin``; left neighbour = the lanelet whose right bound is
+    this one's left bound (the same way), successors = lanelets whose centre starts
+    within 0.5 m of this one's end in a similar heading; the speed limit from the
+    lanelet's ``speed_limit`` tag (km/h unless ``mph``), else a ``speed_limit``
+    regulatory element it references (``sign_type`` ``de274-<kmh>`` or ``speed_limit``),
+    else the recording's ``speedLimit``, else 130 km/h (the German advisory speed).
+    Lanelets of subtype ``walkway``, ``crosswalk``, ``bicycle_lane``, ``stairs`` are left
+    out. The result is a :class:`LaneletMap`: a :class:`scenarios.maps.RoadMap` (lane ids
+    are the lanelet ids as strings) plus the neighbour relations.
+
+Extraction (App. E, one work unit per recording)
+    1. Resampling: every ``step = dt * frameRate`` frames (``dt = 0.2`` s, 5 frames at
+       exiD's 25 Hz), on the global frame grid (``frame % step == 0``); a ``frameRate``
+       that does not give an integer step is an error.
+    2. Lane changes: a vehicle changes lane between two samples when its lanelet changes
+       to one that is neither a successor nor a predecessor of the previous one (across
+       lanes: a neighbour, or a jump over several). Where ``laneletId`` is missing, the
+       lanelet is the one whose centre line is nearest within its half width.
+    3. Scenes (``N = 4``): for every vehicle with a lane change at sample ``c``, every
+       current sample ``t`` on the grid of ``stride`` samples such that the change lies in
+       ``(t - H, t + T]`` and the vehicle exists from ``t - H`` to ``t + T``; its agents are
+       that vehicle (agent 0) and the ``N - 1`` vehicles nearest to it at ``t`` (within
+       ``neighbour_range``) that exist over the same window. A scene with fewer is
+       skipped; the same set of agents at the same ``t`` is kept once. With
+       ``max_scenes_per_recording`` > 0, that many scenes, evenly spread, are kept.
+    4. Sample: history ``H + 1 = 10`` states (1.8 s), the future ``T = 20`` states (4 s),
+       state ``(x, y, v, theta)``: ``xCenter, yCenter``, ``v = |(xVelocity, yVelocity)|``,
+       ``theta = heading`` (rad, continuous per agent, the current one in ``(-pi, pi]``).
+       Fixed global orientation (paper App. F: the origin is fixed), translated so that
+       the scene's origin (the mean current position of its agents, in ``frame``) is 0.
+    5. Modes: real data has one future: ``future`` ``(M = 5, N, T, 4)`` holds it in slot
+       ``gt_mode = 0`` and copies it in the other slots with ``mode_valid`` False (the
+       RPI / left-turn convention for unavailable modes).
+    6. Map input: per agent, its current lane and its left and right neighbours (where one
+       is missing, the current lane's boundary on that side, as the paper's goal decoder
+       does), each a *corridor* (the lanelet continued through its straightest
+       predecessors and successors) windowed from ``lane_behind`` m behind to
+       ``lane_ahead`` m ahead of the agent (clamped to the corridor's ends, so every point
+       lies on the map), resampled to ``P = lane_points``:
+       ``lanes`` ``(3 N, P, 2)`` (agent-major: left, current, right). ``paths``
+       ``(N, P, 2)``: the current lane (the game's lane feature), ``vref`` ``(N,)``: its
+       speed limit. ``goal_candidates`` ``(N, G = 60, 2)``: ``G / 3`` points on each of
+       the three from ``goal_near * v T dt`` to ``goal_far * v T dt + goal_margin`` m ahead
+       of the agent (``goal_candidate_lane``: 0 left, 1 current, 2 right;
+       ``goal_candidate_on_lane`` False on a boundary).
+    7. Kept per agent: ``length``, ``width``, ``vehicle_class`` (index in
+       :data:`CLASSES`), ``radius = length / 2`` (the paper's ``r = L / 2``),
+       ``track_id``, ``lane_change`` (in the window); per sample ``recording``,
+       ``location``, ``frame`` (current frame).
+
+Splits (paper: the test set is a different map)
+    Recordings of ``test_locations`` (default ``(0,)``, the paper's "map 0") are the test
+    split; of the others, a seeded ``val_fraction`` of the recordings (at least one) is
+    val, the rest train. No location is in test and in train / val.
+
+Game (App. F.3, exiD): ``N = 4`` unicycles, ``K = T = 20``, ``dt = 0.2``; per agent the
+terminal goal (the goal decoder's), ``lane`` (:class:`~epo_casadi.features.Path` on
+``paths``), ``vref`` (:class:`~epo_casadi.features.ReferenceVelocity` on ``vref``),
+velocity, acceleration, jerk, turn rate, turn acceleration; collision every 5th step.
+The game's radii are numbers of the game (``AgentSpec.radius``), not parameters, so one
+game cannot carry each sample's ``L / 2``: every agent has ``radius`` (default 2.5 m,
+``L / 2`` of a 5 m car); the per-sample ``L / 2`` is stored in ``radius`` for a model
+that sets it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
+from functools import cached_property
+from pathlib import Path as FilePath
+
+import numpy as np
+
+from epo_casadi import (
+    Acceleration,
+    AgentSpec,
+    Collision,
+    GameSpec,
+    Goal,
+    Jerk,
+    Path,
+    PotentialGame,
+    ReferenceVelocity,
+    TurnAcceleration,
+    TurnRate,
+    Velocity,
+)
+from epo_casadi.errors import SpecError, check_number
+
+from .dataset import SPLITS, DatasetError, FieldSpec, Scenario
+from .maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
+
+__all__ = [
+    "CLASSES",
+    "TRACK_COLUMNS",
+    "TRACKS_META_COLUMNS",
+    "RECORDING_META_COLUMNS",
+    "Recording",
+    "LaneletMap",
+    "ExidRecipe",
+    "ExidScenario",
+    "find_recordings",
+    "read_recording",
+    "read_lanelet_map",
+    "find_map",
+    "utm_from_latlon",
+    "latlon_from_utm",
+    "lane_changes",
+]
+
+#: vehicle classes (index stored in ``vehicle_class``); others map to the last entry
+CLASSES = ("car", "van", "truck", "bus", "trailer", "motorcycle", "other")
+TRACK_COLUMNS = (
+    "recordingId",
+    "trackId",
+    "frame",
+    "xCenter",
+    "yCenter",
+    "heading",
+    "width",
+    "length",
+    "xVelocity",
+    "yVelocity",
+    "xAcceleration",
+    "yAcceleration",
+    "lonVelocity",
+    "latVelocity",
+    "lonAcceleration",
+    "latAcceleration",
+)
+TRACKS_META_COLUMNS = (
+    "recordingId",
+    "trackId",
+    "initialFrame",
+    "finalFrame",
+    "numFrames",
+    "width",
+    "length",
+    "class",
+)
+RECORDING_META_COLUMNS = ("recordingId", "locationId", "frameRate", "xUtmOrigin", "yUtmOrigin")
+DEFAULT_SPEED_LIMIT = 130 / 3.6  # m/s: German advisory speed where there is no limit
+SKIP_SUBTYPES = {"walkway", "crosswalk", "bicycle_lane", "stairs"}
+
+
+# --------------------------------------------------------------------------------------
+# UTM (WGS84), Krueger series to n^3 (sub-millimetre within a zone)
+# --------------------------------------------------------------------------------------
+_A, _F = 6378137.0, 1 / 298.257223563
+_N = _F / (2 - _F)
+_AA = _A / (1 + _N) * (1 + _N**2 / 4 + _N**4 / 64)
+_ALPHA = (
+    _N / 2 - 2 * _N**2 / 3 + 5 * _N**3 / 16,
+    13 * _N**2 / 48 - 3 * _N**3 / 5,
+    61 * _N**3 / 240,
+)
+_BETA = (_N / 2 - 2 * _N**2 / 3 + 37 * _N**3 / 96, _N**2 / 48 + _N**3 / 15, 17 * _N**3 / 480)
+_DELTA = (2 * _N - 2 * _N**2 / 3 - 2 * _N**3, 7 * _N**2 / 3 - 8 * _N**3 / 5, 56 * _N**3 / 15)
+_E = 2 * math.sqrt(_N) / (1 + _N)
+_K0, _E0 = 0.9996, 500000.0
+
+
+def utm_zone(lon: float) -> int:
+    """UTM zone (1..60) of a longitude in degrees."""
+    return int((lon + 180.0) // 6.0) % 60 + 1
+
+
+def utm_from_latlon(lat, lon, zone: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """UTM easting and northing (m, northern hemisphere) of WGS84 ``lat, lon`` (deg)."""
+    lat, lon = np.asarray(lat, dtype=float), np.asarray(lon, dtype=float)
+    z = utm_zone(float(np.mean(lon))) if zone is None else int(zone)
+    phi, lam = np.radians(lat), np.radians(lon - (6 * z - 183))
+    t = np.sinh(np.arctanh(np.sin(phi)) - _E * np.arctanh(_E * np.sin(phi)))
+    xi = np.arctan2(t, np.cos(lam))
+    eta = np.arctanh(np.sin(lam) / np.sqrt(1 + t**2))
+    E = eta + sum(a * np.cos(2 * j * xi) * np.sinh(2 * j * eta) for j, a in enumerate(_ALPHA, 1))
+    N = xi + sum(a * np.sin(2 * j * xi) * np.cosh(2 * j * eta) for j, a in enumerate(_ALPHA, 1))
+    return _E0 + _K0 * _AA * E, _K0 * _AA * N
+
+
+def latlon_from_utm(easting, northing, zone: int) -> tuple[np.ndarray, np.ndarray]:
+    """WGS84 ``lat, lon`` (deg) of UTM coordinates (northern hemisphere) in ``zone``."""
+    xi = np.asarray(northing, dtype=float) / (_K0 * _AA)
+    eta = (np.asarray(easting, dtype=float) - _E0) / (_K0 * _AA)
+    xi_ = xi - sum(b * np.sin(2 * j * xi) * np.cosh(2 * j * eta) for j, b in enumerate(_BETA, 1))
+    eta_ = eta - sum(b * np.cos(2 * j * xi) * np.sinh(2 * j * eta) for j, b in enumerate(_BETA, 1))
+    chi = np.arcsin(np.sin(xi_) / np.cosh(eta_))
+    phi = chi + sum(d * np.sin(2 * j * chi) for j, d in enumerate(_DELTA, 1))
+    lam = np.arctan2(np.sinh(eta_), np.cos(xi_))
+    return np.degrees(phi), np.degrees(lam) + (6 * zone - 183)
+
+
+# --------------------------------------------------------------------------------------
+# CSV reading
+# --------------------------------------------------------------------------------------
+def _read_csv(path: FilePath, columns: Sequence[str], optional: Sequence[str] = ()):
+    """The CSV at ``path`` with ``columns`` numeric (checked), ``optional`` kept as text."""
+    import pandas as pd
+
+    if not path.is_file():
+        raise DatasetError(str(path), "missing file")
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise DatasetError(str(path), f"not a readable CSV ({str(e).strip()})") from None
+    for c in columns:
+        if c not in df.columns:
+            raise DatasetError(
+                f"{path}:{c}", f"missing column; the file has {', '.join(df.columns)}"
+            )
+    if len(df) == 0:
+        raise DatasetError(str(path), "no rows")
+    out = {}
+    for c in columns:
+        if c == "class":
+            out[c] = df[c].str.strip().str.lower().to_numpy()
+            continue
+        s = df[c].str.strip()
+        v = pd.to_numeric(s, errors="coerce")
+        bad = v.isna().to_numpy()
+        if bad.any():
+            i = int(np.argmax(bad))
+            what = "an empty value (truncated file?)" if s.iloc[i] == "" else repr(s.iloc[i])
+            raise DatasetError(f"{path}:{c}", f"expected a number, got {what} in line {i + 2}")
+        out[c] = v.to_numpy(dtype=float)
+    for c in optional:
+        if c in df.columns:
+            out[c] = df[c].to_numpy()
+    return out, len(df)
+
+
+def _ids(column: np.ndarray) -> np.ndarray:
+    """First id of each ``"a;b"`` entry; ``-1`` where empty or not a number."""
+    first = np.array([str(x).split(";")[0].strip() for x in column])
+    out = np.full(len(first), -1, dtype=np.int64)
+    ok = np.char.isdigit(first)
+    out[ok] = first[ok].astype(np.int64)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """One recording: metadata and per-row track arrays, sorted by ``(trackId, frame)``.
+
+    ``rows``: column name -> ``(R,)`` array (the :data:`TRACK_COLUMNS`, and ``laneletId``
+    ``(R,)`` int, ``-1`` where unknown or absent); ``meta``: tracksMeta column ->
+    ``(n_tracks,)`` array sorted by ``trackId``; ``start``: row offset of each track.
+    """
+
+    id: int
+    location: int
+    frame_rate: float
+    speed_limit: float | None
+    utm_origin: tuple[float, float]
+    lonlat: tuple[float, float] | None
+    rows: dict
+    meta: dict
+    start: np.ndarray
+    files: tuple[str, str, str]
+
+    @property
+    def n_tracks(self) -> int:
+        return len(self.meta["trackId"])
+
+
+def find_recordings(raw: str | FilePath) -> dict[int, FilePath]:
+    """Recording id -> directory of its CSVs, for every ``NN_recordingMeta.csv`` found in
+    ``raw`` or ``raw/data``."""
+    raw = FilePath(raw)
+    if not raw.is_dir():
+        raise DatasetError(str(raw), "no such directory (the exiD release: data/ and maps/)")
+    out = {}
+    for d in (raw, raw / "data"):
+        if d.is_dir():
+            for f in sorted(d.glob("*_recordingMeta.csv")):
+                m = re.fullmatch(r"(\d+)_recordingMeta\.csv", f.name)
+                if m:
+                    out.setdefault(int(m.group(1)), d)
+    if not out:
+        raise DatasetError(str(raw), "holds no NN_recordingMeta.csv (nor does its data/)")
+    return dict(sorted(out.items()))
+
+
+def _recording_meta(path: FilePath) -> dict:
+    m, _ = _read_csv(path, RECORDING_META_COLUMNS, ("speedLimit", "latLocation", "lonLocation"))
+    rec = {k: float(m[k][0]) for k in RECORDING_META_COLUMNS}
+    if not rec["frameRate"] > 0:
+        raise DatasetError(f"{path}:frameRate", f"expected a number > 0, got {rec['frameRate']}")
+    sl = None
+    if "speedLimit" in m:
+        try:
+            sl = float(m["speedLimit"][0])
+        except ValueError:
+            raise DatasetError(
+                f"{path}:speedLimit", f"expected a number, got {m['speedLimit'][0]!r}"
+            ) from None
+        sl = sl if sl > 0 else None
+    lonlat = None
+    if "latLocation" in m and "lonLocation" in m:
+        try:
+            lonlat = (float(m["lonLocation"][0]), float(m["latLocation"][0]))
+        except ValueError:
+            lonlat = None
+    rec["speedLimit"], rec["lonlat"] = sl, lonlat
+    return rec
+
+
+def read_recording(raw: str | FilePath, rid: int) -> Recording:
+    """Recording ``rid`` of the release in ``raw`` (module docstring; errors name file and
+    column)."""
+    dirs = find_recordings(raw)
+    if rid not in dirs:
+        raise DatasetError(str(raw), f"no recording {rid:02d}; found {sorted(dirs)}")
+    d = dirs[rid]
+    f_rec, f_meta, f_trk = (
+        d / f"{rid:02d}_{n}.csv" for n in ("recordingMeta", "tracksMeta", "tracks")
+    )
+    rec = _recording_meta(f_rec)
+    meta, _ = _read_csv(f_meta, TRACKS_META_COLUMNS)
+    rows, n = _read_csv(f_trk, TRACK_COLUMNS, ("laneletId",))
+    lanelet = _ids(rows.pop("laneletId")) if "laneletId" in rows else np.full(n, -1, np.int64)
+    tid = rows["trackId"].astype(np.int64)
+    order = np.lexsort((rows["frame"], tid))
+    rows = {k: v[order] for k, v in rows.items()}
+    rows["laneletId"] = lanelet[order]
+    tid = tid[order]
+    mo = np.argsort(meta["trackId"], kind="stable")
+    meta = {k: v[mo] for k, v in meta.items()}
+    mt = meta["trackId"].astype(np.int64)
+    ids, start, counts = np.unique(tid, return_index=True, return_counts=True)
+    if len(ids) != len(mt) or np.any(ids != mt):
+        extra = sorted(set(ids.tolist()) ^ set(mt.tolist()))[:5]
+        raise DatasetError(
+            f"{f_trk}:trackId",
+            f"tracks and {f_meta.name} list different tracks (e.g. {extra}; truncated file?)",
+        )
+    nf = meta["numFrames"].astype(np.int64)
+    bad = np.flatnonzero(counts != nf)
+    if bad.size:
+        j = int(bad[0])
+        raise DatasetError(
+            f"{f_trk}:frame",
+            f"track {int(ids[j])} has {int(counts[j])} rows, {f_meta.name} says numFrames "
+            f"{int(nf[j])} (truncated file?)",
+        )
+    fr = rows["frame"]
+    ok = (fr[start] == meta["initialFrame"]) & (fr[start + counts - 1] == meta["finalFrame"])
+    gaps = np.diff(fr) != 1
+    gaps[start[1:] - 1] = False
+    if not ok.all() or gaps.any():
+        raise DatasetError(
+            f"{f_trk}:frame",
+            "frames of a track must run from its initialFrame to its finalFrame without gaps",
+        )
+    return Recording(
+        id=int(rid),
+        location=int(rec["locationId"]),
+        frame_rate=float(rec["frameRate"]),
+        speed_limit=rec["speedLimit"],
+        utm_origin=(rec["xUtmOrigin"], rec["yUtmOrigin"]),
+        lonlat=rec["lonlat"],
+        rows=rows,
+        meta=meta,
+        start=start.astype(np.int64),
+        files=(str(f_trk), str(f_meta), str(f_rec)),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# lanelet2 maps
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class LaneletMap:
+    """A lanelet2 map as lanes: ``road_map`` (ids = lanelet ids as strings), ``left`` and
+    ``right`` (lane id -> neighbour id or ``None``), ``predecessors``, ``path``."""
+
+    road_map: RoadMap
+    left: dict
+    right: dict
+    predecessors: dict
+    path: str
+
+    @cached_property
+    def ids(self) -> tuple[str, ...]:
+        return self.road_map.ids
+
+    def locate(self, points: np.ndarray) -> np.ndarray:
+        """Per point ``(Q, 2)``: id (int) of the lanelet whose centre line is nearest and
+        within its half width, ``-1`` if none."""
+        pts = np.atleast_2d(np.asarray(points, dtype=float))
+        best = np.full(len(pts), np.inf)
+        out = np.full(len(pts), -1, dtype=np.int64)
+        for ln in self.road_map.lanes:
+            _, d = ln.project(pts)
+            win = (d < best) & (d <= 0.5 * ln.width + 1e-6)
+            best[win], out[win] = d[win], int(ln.id)
+        return out
+
+
+def find_map(raw: str | FilePath, location: int) -> FilePath:
+    """The ``.osm`` map of ``location`` in the release (module docstring)."""
+    raw = FilePath(raw)
+    for d in (raw / "maps" / "lanelet2", raw / "maps", raw):
+        if d.is_dir():
+            hits = sorted(
+                f
+                for f in d.glob("*.osm")
+                if re.fullmatch(rf"(location)?0*{location}(_.*)?\.osm", f.name)
+            )
+            if hits:
+                return hits[0]
+    raise DatasetError(
+        str(raw / "maps" / "lanelet2"),
+        f"no lanelet2 map {location}_<name>.osm for location {location}",
+    )
+
+
+def _speed(text: str, where: str) -> float | None:
+    t = text.strip().lower()
+    if t in ("", "none", "no", "-1", "unlimited"):
+        return None
+    m = re.fullmatch(r"([0-9.]+)\s*(km/h|kmh|kph|mph)?", t)
+    if not m:
+        raise DatasetError(where, f"expected a speed like '100' or '100 km/h', got {text!r}")
+    v = float(m.group(1))
+    return v * (0.44704 if m.group(2) == "mph" else 1 / 3.6)
+
+
+def read_lanelet_map(
+    path: str | FilePath,
+    utm_origin: tuple[float, float] | None = None,
+    lonlat: tuple[float, float] | None = None,
+    speed_limit: float | None = None,
+) -> LaneletMap:
+    """Lanes of a lanelet2 ``.osm`` map in the recordings' local frame (module docstring).
+
+    ``utm_origin``: the recording's ``(xUtmOrigin, yUtmOrigin)``, needed when nodes have
+    only ``lat`` / ``lon``; ``lonlat``: picks the UTM zone; ``speed_limit`` (m/s): for
+    lanelets without one.
+    """
+    path = FilePath(path)
+    if not path.is_file():
+        raise DatasetError(str(path), "missing map file")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise DatasetError(str(path), f"not readable OSM XML ({e})") from None
+
+    def tags(el) -> dict:
+        return {t.get("k"): t.get("v", "") for t in el.findall("tag")}
+
+    ids, lat, lon, lx, ly = [], [], [], [], []
+    for nd in root.findall("node"):
+        t = tags(nd)
+        try:
+            ids.append(int(nd.get("id")))
+            lat.append(float(nd.get("lat", "nan")))
+            lon.append(float(nd.get("lon", "nan")))
+            lx.append(float(t.get("local_x", "nan")))
+            ly.append(float(t.get("local_y", "nan")))
+        except (TypeError, ValueError):
+            raise DatasetError(
+                f"{path}:node", f"node {nd.get('id')!r}: non-numeric id or position"
+            ) from None
+    lx, ly, lat, lon = map(np.asarray, (lx, ly, lat, lon))
+    if len(ids) and np.all(np.isfinite(lx) & np.isfinite(ly)):
+        xy = np.stack([lx, ly], axis=1)
+    else:
+        if not np.all(np.isfinite(lat) & np.isfinite(lon)):
+            raise DatasetError(f"{path}:node", "every node needs lat/lon (or local_x/local_y tags)")
+        if utm_origin is None:
+            raise DatasetError(
+                f"{path}:node",
+                "nodes have lat/lon only: the recording's xUtmOrigin/yUtmOrigin are needed",
+            )
+        zone = utm_zone(lonlat[0]) if lonlat is not None else None
+        e, n = utm_from_latlon(lat, lon, zone)
+        xy = np.stack([e - utm_origin[0], n - utm_origin[1]], axis=1)
+    node = dict(zip(ids, xy, strict=True))
+    ways = {}
+    for w in root.findall("way"):
+        refs = [int(r.get("ref")) for r in w.findall("nd")]
+        missing = [r for r in refs if r not in node]
+        if missing:
+            raise DatasetError(
+                f"{path}:way", f"way {w.get('id')} refers to unknown node {missing[0]}"
+            )
+        ways[int(w.get("id"))] = np.array([node[r] for r in refs], dtype=float)
+    regs = {}
+    for r in root.findall("relation"):
+        t = tags(r)
+        if t.get("type") == "regulatory_element" and t.get("subtype") == "speed_limit":
+            v = t.get("speed_limit") or re.sub(r"^de274-?", "", t.get("sign_type", ""))
+            regs[int(r.get("id"))] = _speed(v, f"{path}:relation {r.get('id')}.speed_limit")
+    raw_lanes = []
+    for r in root.findall("relation"):
+        t = tags(r)
+        if t.get("type") != "lanelet" or t.get("subtype", "road") in SKIP_SUBTYPES:
+            continue
+        rid = int(r.get("id"))
+        mem = {
+            m.get("role"): int(m.get("ref"))
+            for m in r.findall("member")
+            if m.get("role") in ("left", "right")
+        }
+        if set(mem) != {"left", "right"} or mem["left"] not in ways or mem["right"] not in ways:
+            raise DatasetError(f"{path}:relation {rid}", "a lanelet needs a left and a right way")
+        left, right = _dedupe(ways[mem["left"]]), _dedupe(ways[mem["right"]])
+        if len(left) < 2 or len(right) < 2:
+            raise DatasetError(f"{path}:relation {rid}", "a bound needs two distinct points")
+        same = np.linalg.norm(left[0] - right[0]) + np.linalg.norm(left[-1] - right[-1])
+        cross = np.linalg.norm(left[0] - right[-1]) + np.linalg.norm(left[-1] - right[0])
+        if cross < same:
+            left = left[::-1]
+        n = max(len(left), len(right), 2) * 2
+        lc = resample_at(left, np.linspace(0, arc_length(left)[-1], n))
+        rc = resample_at(right, np.linspace(0, arc_length(right)[-1], n))
+        centre = _dedupe(0.5 * (lc + rc))
+        d = centre[-1] - centre[0]
+        q = 0.5 * (lc[n // 2] - rc[n // 2])
+        side = d[0] * q[1] - d[1] * q[0]
+        if side < 0:  # the "left" bound lies on the right: the lanelet runs the other way
+            centre, lc, rc = centre[::-1], rc[::-1], lc[::-1]
+            mem = {"left": mem["right"], "right": mem["left"]}
+        sl = None
+        if "speed_limit" in t:
+            sl = _speed(t["speed_limit"], f"{path}:relation {rid}.speed_limit")
+        for m in r.findall("member"):
+            if m.get("role") == "regulatory_element" and int(m.get("ref")) in regs:
+                sl = sl if sl is not None else regs[int(m.get("ref"))]
+        sl = sl if sl is not None else (speed_limit or DEFAULT_SPEED_LIMIT)
+        width = float(np.mean(np.linalg.norm(lc - rc, axis=1)))
+        raw_lanes.append((str(rid), centre, width, sl, mem["left"], mem["right"]))
+    if not raw_lanes:
+        raise DatasetError(f"{path}:relation", "no lanelet relations (type=lanelet)")
+    # successors: a centre starting near this one's end, in a similar heading
+    starts = np.array([c[0] for _, c, *_ in raw_lanes])
+    ends = np.array([c[-1] for _, c, *_ in raw_lanes])
+    h0 = np.array([_heading(c[:2]) for _, c, *_ in raw_lanes])
+    h1 = np.array([_heading(c[-2:]) for _, c, *_ in raw_lanes])
+    near = np.linalg.norm(ends[:, None] - starts[None], axis=2) < 0.5
+    aligned = np.cos(h1[:, None] - h0[None]) > math.cos(math.radians(45))
+    succ = near & aligned
+    np.fill_diagonal(succ, False)
+    by_left = {lw: i for i, (*_, lw, _rw) in enumerate(raw_lanes)}
+    by_right = {rw: i for i, (*_, _lw, rw) in enumerate(raw_lanes)}
+    lanes, left, right, pred = [], {}, {}, {}
+    for i, (lid, centre, width, sl, lw, rw) in enumerate(raw_lanes):
+        s = tuple(raw_lanes[j][0] for j in np.flatnonzero(succ[i]))
+        lanes.append(Lane(lid, centre, width=width, speed_limit=sl, successors=s))
+        j = by_right.get(lw)
+        left[lid] = raw_lanes[j][0] if j is not None and j != i else None
+        j = by_left.get(rw)
+        right[lid] = raw_lanes[j][0] if j is not None and j != i else None
+        pred[lid] = tuple(raw_lanes[j][0] for j in np.flatnonzero(succ[:, i]))
+    return LaneletMap(RoadMap(tuple(lanes)), left, right, pred, str(path))
+
+
+def _dedupe(p: np.ndarray) -> np.ndarray:
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6])
+    return p[keep]
+
+
+def _heading(seg: np.ndarray) -> float:
+    d = seg[-1] - seg[0]
+    return math.atan2(d[1], d[0])
+
+
+# --------------------------------------------------------------------------------------
+# lane changes
+# --------------------------------------------------------------------------------------
+def lane_changes(lanelets: np.ndarray, lmap: LaneletMap) -> np.ndarray:
+    """``(n,)`` bool: True at sample ``k`` when the lanelet at ``k`` differs from the one at
+    ``k - 1`` and neither is a successor of the other (both known, ``>= 0``)."""
+    a, b = lanelets[:-1], lanelets[1:]
+    out = np.zeros(len(lanelets), dtype=bool)
+    cand = np.flatnonzero((a >= 0) & (b >= 0) & (a != b))
+    rm = lmap.road_map
+    for k in cand:
+        sa, sb = str(int(a[k])), str(int(b[k]))
+        if sa not in rm or sb not in rm:
+            out[k + 1] = True
+            continue
+        if sb in rm.lane(sa).successors or sa in rm.lane(sb).successors:
+            continue
+        out[k + 1] = True
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# recipe and scenario
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ExidRecipe:
+    """Everything that defines an exiD-layout dataset (with the seed). Frozen; unknown keys
+    fail. ``recordings`` (``[[id, location], ...]``) and ``raw_digest`` are filled from the
+    raw directory by :meth:`ExidScenario.from_raw`."""
+
+    recordings: tuple[tuple[int, int], ...] = ()  #: (recording id, location id) of each unit
+    raw_digest: str = ""  #: sha256 of the raw files' names, sizes, metadata and maps
+    agents: int = 4  #: N
+    history: int = 9  #: H past samples (plus the current one): 1.8 s
+    horizon: int = 20  #: T = K future samples: 4 s
+    modes: int = 5  #: M future slots (one ground truth, the rest copies)
+    dt: float = 0.2  #: resampling step (s)
+    stride: int = 5  #: current samples of one lane changer's scenes are this many apart
+    neighbour_range: float = 100.0  #: other agents within this distance at the current step (m)
+    max_scenes_per_recording: int = 0  #: > 0: keep this many scenes, evenly spread
+    test_locations: tuple[int, ...] = (0,)  #: locations (maps) of the test split
+    val_fraction: float = 0.18  #: share of the other recordings in val (paper: 48745/255337)
+    lane_points: int = 20  #: P, points of every lane / path polyline
+    lane_behind: float = 20.0  #: lane windows start this far behind the agent (m)
+    lane_ahead: float = 120.0  #: ... and end this far ahead (m)
+    goal_points: int = 60  #: G (the paper's), G / 3 per lane
+    goal_near: float = 0.3  #: candidates from goal_near * v * T * dt ahead ...
+    goal_far: float = 1.4  #: ... to goal_far * v * T * dt + goal_margin ahead
+    goal_margin: float = 10.0  #: (m)
+    radius: float = 2.5  #: collision radius of every agent in the game (m): L / 2 of a 5 m car
+    collision_every: int = 5  #: the collision term every this many steps (paper: 5)
+    w_goal: float = 1.0  #: default weights of the game (the network predicts them)
+    w_lane: float = 1.0
+    w_vref: float = 1.0
+    w_vel: float = 0.1
+    w_acc: float = 1.0
+    w_jerk: float = 0.1
+    w_turn: float = 1.0
+    w_turnacc: float = 0.1
+    w_collision: float = 10.0
+
+    def __post_init__(self):
+        p = "exid"
+        try:
+            recs = tuple((int(a), int(b)) for a, b in self.recordings)
+        except (TypeError, ValueError):
+            raise SpecError(
+                f"{p}.recordings", "expected [[recording id, location id], ...]"
+            ) from None
+        object.__setattr__(self, "recordings", recs)
+        if isinstance(self.test_locations, (str, bytes)) or not isinstance(
+            self.test_locations, (list, tuple)
+        ):
+            raise SpecError(
+                f"{p}.test_locations",
+                f"expected a list of location ids, got {self.test_locations!r}",
+            )
+        object.__setattr__(self, "test_locations", tuple(int(x) for x in self.test_locations))
+        if not isinstance(self.raw_digest, str):
+            raise SpecError(f"{p}.raw_digest", "expected a string")
+        for k, lo in (
+            ("agents", 2),
+            ("history", 1),
+            ("horizon", 2),
+            ("modes", 1),
+            ("stride", 1),
+            ("max_scenes_per_recording", 0),
+            ("lane_points", 2),
+            ("goal_points", 3),
+            ("collision_every", 1),
+        ):
+            check_number(f"{p}.{k}", getattr(self, k), lo=lo, integer=True)
+        if self.goal_points % 3:
+            raise SpecError(f"{p}.goal_points", f"expected a multiple of 3, got {self.goal_points}")
+        check_number(f"{p}.dt", self.dt, lo=0.01, hi=2.0)
+        check_number(f"{p}.val_fraction", self.val_fraction, lo=0.0, hi=0.9)
+        for k in ("neighbour_range", "lane_ahead", "radius", "goal_far"):
+            check_number(f"{p}.{k}", getattr(self, k), lo=0.0, lo_open=True)
+        for k in ("lane_behind", "goal_near", "goal_margin"):
+            check_number(f"{p}.{k}", getattr(self, k), lo=0.0)
+        for f in fields(self):
+            if f.name.startswith("w_"):
+                check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["recordings"] = [list(r) for r in self.recordings]
+        d["test_locations"] = list(self.test_locations)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExidRecipe:
+        if not isinstance(d, dict):
+            raise SpecError("exid", f"expected a mapping of recipe fields, got {type(d).__name__}")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise SpecError("exid", f"unknown recipe field(s) {unknown}; allowed: {sorted(names)}")
+        return cls(**d)
+
+
+def raw_digest(raw: str | FilePath, recordings: Sequence[int]) -> str:
+    """sha256 over the names and sizes of the tracks files and the contents of the meta
+    files and maps (a different raw set refuses to resume a dataset)."""
+    raw = FilePath(raw)
+    dirs = find_recordings(raw)
+    h = hashlib.sha256()
+    locs = set()
+    for rid in recordings:
+        d = dirs[rid]
+        t = d / f"{rid:02d}_tracks.csv"
+        h.update(f"{t.name}:{t.stat().st_size if t.exists() else -1}".encode())
+        for n in ("tracksMeta", "recordingMeta"):
+            f = d / f"{rid:02d}_{n}.csv"
+            h.update(f.read_bytes() if f.exists() else b"-")
+        locs.add(int(_recording_meta(d / f"{rid:02d}_recordingMeta.csv")["locationId"]))
+    for loc in sorted(locs):
+        h.update(find_map(raw, loc).read_bytes())
+    return h.hexdigest()
+
+
+class ExidScenario(Scenario):
+    """Samples of the exiD layout (module docstring); one work unit per recording.
+    Construct hooks: :meth:`agent_specs`, :meth:`game_spec`, :meth:`scenes`, :meth:`cut`."""
+
+    name = "exid"
+
+    def __init__(self, recipe: ExidRecipe | None = None, raw: str | FilePath | None = None):
+        if recipe is not None and not isinstance(recipe, ExidRecipe):
+            raise SpecError("recipe", f"expected an ExidRecipe, got {type(recipe).__name__}")
+        self.recipe = recipe or ExidRecipe()
+        self.raw = None if raw is None else FilePath(raw)
+
+    @classmethod
+    def from_raw(cls, raw: str | FilePath, **overrides) -> ExidScenario:
+        """The scenario of every recording in ``raw`` (``overrides``: recipe fields; a
+        ``recordings`` override given as ids selects recordings)."""
+        dirs = find_recordings(raw)
+        want = overrides.pop("recordings", None)
+        ids = (
+            sorted(dirs)
+            if want is None
+            else [int(r[0] if isinstance(r, (list, tuple)) else r) for r in want]
+        )
+        bad = [r for r in ids if r not in dirs]
+        if bad:
+            raise SpecError(
+                "exid.recordings", f"no such recording(s) {bad} in {raw}; found {sorted(dirs)}"
+            )
+        recs = []
+        for rid in ids:
+            m = _recording_meta(dirs[rid] / f"{rid:02d}_recordingMeta.csv")
+            recs.append((rid, int(m["locationId"])))
+        recipe = ExidRecipe.from_dict(
+            {**overrides, "recordings": recs, "raw_digest": raw_digest(raw, ids)}
+        )
+        return cls(recipe, raw)
+
+    def __getstate__(self):
+        return {"recipe": self.recipe, "raw": self.raw}
+
+    def __setstate__(self, state):
+        self.recipe, self.raw = state["recipe"], state["raw"]
+
+    # ---- Scenario interface ----------------------------------------------------------
+    def recipe_dict(self) -> dict:
+        return self.recipe.to_dict()
+
+    @property
+    def n_units(self) -> int:
+        return len(self.recipe.recordings)
+
+    @property
+    def units_per_shard(self) -> int:
+        return 1
+
+    def split_units(self, seed: int) -> dict[str, list[int]]:
+        """By location (module docstring)."""
+        r = self.recipe
+        test = [i for i, (_, loc) in enumerate(r.recordings) if loc in r.test_locations]
+        rest = [i for i, (_, loc) in enumerate(r.recordings) if loc not in r.test_locations]
+        if not test or not rest:
+            raise SpecError(
+                "exid.test_locations",
+                f"need recordings of a test location {list(r.test_locations)} and of another one; "
+                f"locations present: {sorted({loc for _, loc in r.recordings})}",
+            )
+        out = {"train": list(rest), "val": [], "test": test}
+        if len(rest) >= 2 and r.val_fraction > 0:
+            rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(0,)))
+            nv = max(1, round(r.val_fraction * len(rest)))
+            nv = min(nv, len(rest) - 1)
+            val = sorted(int(rest[j]) for j in rng.permutation(len(rest))[:nv])
+            out = {"train": [u for u in rest if u not in val], "val": val, "test": test}
+        return {s: sorted(out[s]) for s in SPLITS}
+
+    def schema(self) -> dict[str, FieldSpec]:
+        r = self.recipe
+        N, H, M, T, P, G = r.agents, r.history, r.modes, r.horizon, r.lane_points, r.goal_points
+        return {
+            "history": FieldSpec(
+                (H + 1, N, 4), "float32", "states (x, y, v, theta) at t-H..t, scene frame"
+            ),
+            "history_valid": FieldSpec((H + 1,), "bool", "always True (complete windows only)"),
+            "future": FieldSpec(
+                (M, N, T, 4), "float32", "states at t+1..t+T; slot gt_mode: the recording"
+            ),
+            "mode_valid": FieldSpec((M,), "bool", "True only for the ground-truth slot"),
+            "gt_mode": FieldSpec((), "int8", "slot of the recorded future (0)"),
+            "lanes": FieldSpec(
+                (3 * N, P, 2), "float32", "per agent: left, current, right lane windows"
+            ),
+            "paths": FieldSpec(
+                (N, P, 2), "float32", "current lane window of each agent (game path)"
+            ),
+            "vref": FieldSpec((N,), "float32", "speed limit of each agent's lanelet (m/s)"),
+            "goal_candidates": FieldSpec(
+                (N, G, 2), "float32", "G/3 points on each of the three lanes"
+            ),
+            "goal_candidate_lane": FieldSpec((N, G), "int8", "0 left, 1 current, 2 right lane"),
+            "goal_candidate_on_lane": FieldSpec(
+                (N, G), "bool", "False: on a lane boundary (no neighbour)"
+            ),
+            "length": FieldSpec((N,), "float32", "vehicle length (m)"),
+            "width": FieldSpec((N,), "float32", "vehicle width (m)"),
+            "vehicle_class": FieldSpec((N,), "int8", "index in meta.classes"),
+            "radius": FieldSpec((N,), "float32", "L / 2 (m), the paper's collision radius"),
+            "track_id": FieldSpec((N,), "int32", "trackId in the recording"),
+            "lane_change": FieldSpec((N,), "bool", "the agent changes lane in the window"),
+            "recording": FieldSpec((), "int16", "recordingId"),
+            "location": FieldSpec((), "int16", "locationId (map)"),
+            "frame": FieldSpec((), "int64", "current frame in the recording"),
+            "origin": FieldSpec((2,), "float64", "scene origin in the recording's local frame (m)"),
+        }
+
+    def meta(self) -> dict:
+        r = self.recipe
+        return {
+            "state": ["x", "y", "v", "theta"],
+            "classes": list(CLASSES),
+            "agents": [f"v{i}" for i in range(r.agents)],
+            "splits_by_location": {"test": list(r.test_locations)},
+            "raw": None if self.raw is None else str(self.raw),
+            "frame": "recording's local frame (UTM minus origin) translated by origin; not rotated",
+            "param_names": list(self.game.params.names),
+            "dt": r.dt,
+            "units": "metres, seconds, radians",
+        }
+
+    def expected_samples(self) -> int | None:
+        m = self.recipe.max_scenes_per_recording
+        return m * self.n_units if m else None
+
+    # ---- the game ----------------------------------------------------------------------
+    def agent_specs(self) -> list[AgentSpec]:
+        """App. F.3 exiD features plus the goal term, per agent."""
+        r = self.recipe
+        out = []
+        for i in range(r.agents):
+            feats = [
+                Goal(weight=r.w_goal),
+                Path(weight=r.w_lane, points=r.lane_points, label="lane"),
+                ReferenceVelocity(weight=r.w_vref, label="vref"),
+                Velocity(weight=r.w_vel),
+                Acceleration(weight=r.w_acc),
+                Jerk(weight=r.w_jerk),
+                TurnRate(weight=r.w_turn),
+                TurnAcceleration(weight=r.w_turnacc),
+            ]
+            out.append(AgentSpec(f"v{i}", "unicycle", feats, radius=r.radius))
+        return out
+
+    def game_spec(self) -> GameSpec:
+        r = self.recipe
+        return GameSpec(
+            self.agent_specs(),
+            [Collision(weight=r.w_collision, every=r.collision_every)],
+            horizon=r.horizon,
+            dt=r.dt,
+        )
+
+    @cached_property
+    def game(self) -> PotentialGame:
+        return PotentialGame(self.game_spec())
+
+    # ---- extraction --------------------------------------------------------------------
+    def load(self, rid: int) -> tuple[Recording, LaneletMap]:
+        """Recording ``rid`` and its location's map."""
+        if self.raw is None:
+            raise SpecError(
+                "exid.raw", "this scenario has no raw directory (ExidScenario.from_raw)"
+            )
+        rec = read_recording(self.raw, rid)
+        lmap = read_lanelet_map(
+            find_map(self.raw, rec.location), rec.utm_origin, rec.lonlat, rec.speed_limit
+        )
+        return rec, lmap
+
+    def resample(self, rec: Recording, lmap: LaneletMap) -> dict:
+        """Per track, the samples on the ``dt`` grid: ``x`` ``(n_tracks, S, 4)`` states and
+        ``lanelet`` ``(n_tracks, S)`` (NaN / -1 where the track does not exist),
+        ``first`` / ``last`` sample index per track, ``grid`` frames ``(S,)``."""
+        r = self.recipe
+        step = r.dt * rec.frame_rate
+        if abs(step - round(step)) > 1e-6 or round(step) < 1:
+            raise DatasetError(
+                f"{rec.files[2]}:frameRate",
+                f"dt = {r.dt} s times frameRate {rec.frame_rate} is not a whole number of frames",
+            )
+        step = int(round(step))
+        rows = rec.rows
+        fr = rows["frame"].astype(np.int64)
+        on = fr % step == 0
+        tid = np.repeat(np.arange(rec.n_tracks), np.diff(np.append(rec.start, len(fr))))
+        S = int(fr.max() // step) + 1
+        x = np.full((rec.n_tracks, S, 4), np.nan)
+        lan = np.full((rec.n_tracks, S), -1, dtype=np.int64)
+        j, k = tid[on], fr[on] // step
+        head = np.radians(rows["heading"][on])
+        x[j, k] = np.stack(
+            [
+                rows["xCenter"][on],
+                rows["yCenter"][on],
+                np.hypot(rows["xVelocity"][on], rows["yVelocity"][on]),
+                head,
+            ],
+            axis=1,
+        )
+        ll = rows["laneletId"][on].copy()
+        unknown = ll < 0
+        if unknown.any():
+            ll[unknown] = lmap.locate(
+                np.stack([rows["xCenter"][on][unknown], rows["yCenter"][on][unknown]], 1)
+            )
+        lan[j, k] = ll
+        exists = np.isfinite(x[..., 0])
+        first = np.where(exists.any(1), np.argmax(exists, 1), S)
+        last = np.where(exists.any(1), S - 1 - np.argmax(exists[:, ::-1], 1), -1)
+        # continuous headings per track
+        th = x[..., 3]
+        filled = np.where(exists, th, 0.0)
+        filled = np.unwrap(filled, axis=1)
+        x[..., 3] = np.where(exists, filled, np.nan)
+        return {"x": x, "lanelet": lan, "first": first, "last": last, "grid": np.arange(S) * step}
+
+    def scenes(self, res: dict, lmap: LaneletMap) -> list[tuple[int, tuple[int, ...], np.ndarray]]:
+        """``(t, agents, changes)`` of every scene (module docstring, step 3); ``changes``:
+        per agent, a lane change in the window."""
+        r = self.recipe
+        H, T, N = r.history, r.horizon, r.agents
+        x, lan, first, last = res["x"], res["lanelet"], res["first"], res["last"]
+        lc = np.zeros(lan.shape, dtype=bool)
+        for j in range(len(x)):
+            if last[j] > first[j]:
+                lc[j, first[j] : last[j] + 1] = lane_changes(lan[j, first[j] : last[j] + 1], lmap)
+        out, seen = [], set()
+        for i, c in zip(*np.nonzero(lc), strict=True):
+            lo = max(c - T, first[i] + H)
+            hi = min(c + H - 1, last[i] - T)
+            t0 = -(-lo // r.stride) * r.stride
+            for t in range(t0, hi + 1, r.stride):
+                alive = (first <= t - H) & (last >= t + T)
+                alive[i] = False
+                cand = np.flatnonzero(alive)
+                d = np.linalg.norm(x[cand, t, :2] - x[i, t, :2], axis=1)
+                keep = d <= r.neighbour_range
+                cand, d = cand[keep], d[keep]
+                if len(cand) < N - 1:
+                    continue
+                agents = (int(i), *(int(a) for a in cand[np.argsort(d, kind="stable")[: N - 1]]))
+                key = (t, tuple(sorted(agents)))
+                if key in seen:
+                    continue
+                seen.add(key)
+                win = lc[list(agents), t - H + 1 : t + T + 1].any(1)
+                out.append((t, agents, win))
+        out.sort(key=lambda s: (s[0], s[1]))
+        m = r.max_scenes_per_recording
+        if m and len(out) > m:
+            pick = np.unique(np.linspace(0, len(out) - 1, m).round().astype(int))
+            out = [out[k] for k in pick]
+        return out
+
+    def _corridor(self, lmap: LaneletMap, lid: str, cache: dict) -> tuple[np.ndarray, float]:
+        """Centre polyline of ``lid`` continued through its straightest predecessors and
+        successors (up to ``lane_behind`` / ``lane_ahead`` + 200 m), and the arc length at
+        which ``lid`` starts on it."""
+        if lid in cache:
+            return cache[lid]
+        rm, r = lmap.road_map, self.recipe
+        lane = rm.lane(lid)
+        parts, s0 = [lane.centre], 0.0
+        cur, total = lane, 0.0
+        seen = {lid}
+        while total < r.lane_ahead + 200 and cur.successors:
+            nxt = _straightest(rm, cur, cur.successors, forward=True)
+            if nxt.id in seen:
+                break
+            seen.add(nxt.id)
+            parts.append(nxt.centre)
+            total += nxt.length
+            cur = nxt
+        cur, total = lane, 0.0
+        while total < r.lane_behind + 200 and lmap.predecessors.get(cur.id):
+            prv = _straightest(rm, cur, lmap.predecessors[cur.id], forward=False)
+            if prv.id in seen:
+                break
+            seen.add(prv.id)
+            parts.insert(0, prv.centre)
+            s0 += prv.length
+            total += prv.length
+            cur = prv
+        line = _dedupe(np.concatenate(parts))
+        cache[lid] = (line, s0)
+        return cache[lid]
+
+    def cut(self, res: dict, rec: Recording, lmap: LaneletMap, scene, cache: dict) -> dict:
+        """The sample of one scene (module docstring, steps 4-7)."""
+        r = self.recipe
+        H, T, N, M, P, G = r.history, r.horizon, r.agents, r.modes, r.lane_points, r.goal_points
+        t, agents, changes = scene
+        ag = list(agents)
+        X = res["x"][ag, t - H : t + T + 1]  # (N, H+T+1, 4)
+        origin = X[:, H, :2].mean(axis=0)
+        X = X.copy()
+        X[..., :2] -= origin
+        cur = X[:, H, 3]
+        X[..., 3] -= (2 * math.pi * np.ceil((cur - math.pi) / (2 * math.pi)))[:, None]
+        hist = X[:, : H + 1].transpose(1, 0, 2)
+        fut = np.repeat(X[None, :, H + 1 :], M, axis=0)
+        lanes = np.empty((N, 3, P, 2))
+        cands = np.empty((N, 3, G // 3, 2))
+        on = np.ones((N, 3), dtype=bool)
+        vref = np.empty(N)
+        rm = lmap.road_map
+        for a, j in enumerate(ag):
+            p = res["x"][j, t, :2]
+            v = float(res["x"][j, t, 2])
+            lid = int(res["lanelet"][j, t])
+            if lid < 0 or str(lid) not in rm:
+                lid = int(lmap.locate(p[None])[0])
+            if lid < 0:  # off every lanelet: the nearest one
+                lid = int(rm.ids[int(np.argmin([ln.project(p[None])[1][0] for ln in rm.lanes]))])
+            sid = str(lid)
+            lane = rm.lane(sid)
+            vref[a] = lane.speed_limit
+            span = v * T * r.dt
+            ahead = np.linspace(r.goal_near * span, r.goal_far * span + r.goal_margin, G // 3)
+            win = np.linspace(-r.lane_behind, r.lane_ahead, P)
+            line, _ = self._corridor(lmap, sid, cache)
+            s, _ = project_to_polyline(p[None], line)
+            centre_w = _along(line, s[0] + win)
+            centre_c = _along(line, s[0] + ahead)
+            for side, nb, sign in ((0, lmap.left.get(sid), 1.0), (2, lmap.right.get(sid), -1.0)):
+                if nb is not None:
+                    nline, _ = self._corridor(lmap, nb, cache)
+                    ns, _ = project_to_polyline(p[None], nline)
+                    lanes[a, side] = _along(nline, ns[0] + win)
+                    cands[a, side] = _along(nline, ns[0] + ahead)
+                else:
+                    off = sign * 0.5 * lane.width
+                    lanes[a, side] = _offset(line, s[0] + win, off)
+                    cands[a, side] = _offset(line, s[0] + ahead, off)
+                    on[a, side] = False
+            lanes[a, 1], cands[a, 1] = centre_w, centre_c
+        lanes -= origin
+        cands -= origin
+        meta = rec.meta
+        length = meta["length"][ag]
+        cls = [CLASSES.index(c) if c in CLASSES else len(CLASSES) - 1 for c in meta["class"][ag]]
+        return {
+            "history": hist,
+            "history_valid": np.ones(H + 1, dtype=bool),
+            "future": fut,
+            "mode_valid": np.arange(M) == 0,
+            "gt_mode": 0,
+            "lanes": lanes.reshape(3 * N, P, 2),
+            "paths": lanes[:, 1],
+            "vref": vref,
+            "goal_candidates": cands.reshape(N, G, 2),
+            "goal_candidate_lane": np.repeat(np.arange(3), G // 3)[None].repeat(N, 0),
+            "goal_candidate_on_lane": np.repeat(on, G // 3, axis=1),
+            "length": length,
+            "width": meta["width"][ag],
+            "vehicle_class": np.array(cls),
+            "radius": 0.5 * length,
+            "track_id": meta["trackId"][ag].astype(np.int64),
+            "lane_change": changes,
+            "recording": rec.id,
+            "location": rec.location,
+            "frame": int(res["grid"][t]),
+            "origin": origin,
+        }
+
+    def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
+        """Every sample of recording ``recordings[index]`` (deterministic; the seed does not
+        enter)."""
+        rid = self.recipe.recordings[index][0]
+        rec, lmap = self.load(rid)
+        res = self.resample(rec, lmap)
+        cache: dict = {}
+        rows = [self.cut(res, rec, lmap, sc, cache) for sc in self.scenes(res, lmap)]
+        schema = self.schema()
+        if not rows:
+            return {k: np.zeros((0, *fs.shape), fs.dtype) for k, fs in schema.items()}
+        return {
+            k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
+            for k, fs in schema.items()
+        }
+
+
+def _straightest(rm: RoadMap, cur: Lane, ids: Sequence[str], forward: bool) -> Lane:
+    h = _heading(cur.centre[-2:] if forward else cur.centre[:2])
+    best = max(
+        (rm.lane(i) for i in ids),
+        key=lambda ln: (
+            math.cos(_heading(ln.centre[:2] if forward else ln.centre[-2:]) - h),
+            ln.id,
+        ),
+    )
+    return best
+
+
+def _along(line: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points of ``line`` at arc lengths ``s``, clamped to its ends (so they stay on the map)."""
+    return resample_at(line, np.asarray(s, dtype=float))
+
+
+def _offset(line: np.ndarray, s: np.ndarray, off: float) -> np.ndarray:
+    """Points at arc lengths ``s`` (clamped) shifted ``off`` metres to the left (negative:
+    right)."""
+    sa = arc_length(line)
+    seg = np.diff(line, axis=0)
+    s = np.clip(s, 0.0, sa[-1])
+    k = np.clip(np.searchsorted(sa, s, side="right") - 1, 0, len(seg) - 1)
+    d = seg[k] / np.linalg.norm(seg[k], axis=1, keepdims=True)
+    return _along(line, s) + off * np.stack([-d[:, 1], d[:, 0]], axis=1)
