@@ -114,10 +114,11 @@ def test_goal_classification_target_and_candidate_mask():
 
 
 def test_goal_regression_and_dispatch():
-    goals = torch.tensor(
+    final = torch.tensor([[[1.0, 2.0], [-3.0, 0.5]]], dtype=F64)  # (B=1, N=2, 2)
+    offsets = torch.tensor(
         [[[[1.0, 0.0], [0.0, 3.0]], [[2.0, 0.0], [0.0, 0.0]]]], dtype=F64
     )  # (B=1, M=2, N=2, 2); squared errors: mode 0 (1, 9), mode 1 (4, 0)
-    final = torch.zeros(1, 2, 2, dtype=F64)
+    goals = final[:, None] + offsets
     assert goal_regression_loss(goals, final).item() == pytest.approx(2.0, abs=1e-12)
     assert goal_regression_loss(goals, final, torch.tensor([[True, False]])).item() == (
         pytest.approx(1.0, abs=1e-12)
@@ -136,3 +137,34 @@ def test_goal_regression_and_dispatch():
         "goal_candidates": cands,
     }
     assert goal_loss(out, gt).item() == pytest.approx(LN(2.0), abs=1e-12)
+
+
+def test_loss_weight_defaults_are_the_papers():
+    """lambda_1, lambda_2, lambda_3 = 1, 0.1, 0.1 (paper Sec. 4.3); marginal: lambda_3 = 1."""
+    w = LossWeights()
+    assert (w.imitation, w.goal, w.probability) == (1.0, 0.1, 0.1)
+
+
+def test_masked_means_count_every_kept_agent_of_the_batch():
+    pos, gt = _example()
+    pos2, gt2 = torch.cat([pos, pos]), torch.cat([gt, gt])
+    logits = torch.tensor([[[0.0, LN(3.0)], [0.0, 0.0]]] * 2, dtype=F64)
+    mask = torch.tensor([[True, True], [False, True]])  # 3 kept (sample, agent) entries
+    out = marginal_loss(pos2, logits, gt2, mask=mask)
+    # ADE of the closest mode: agent 0 -> 0, agent 1 -> 0.5; kept: 0, 0.5, 0.5
+    assert out["imitation"].item() == pytest.approx(1.0 / 3, abs=1e-12)
+    cls = (LN(4 / 3) + 2 * LN(2.0)) / 3
+    assert out["probability"].item() == pytest.approx(cls, abs=1e-12)
+
+
+def test_marginal_loss_with_more_modes_than_agents():
+    """M = 3 modes, N = 2 agents (the mode and agent axes cannot be confused): a third mode
+    10 m off changes nothing."""
+    pos, gt = _example()
+    pos3 = torch.cat([pos, pos[:, :1] + 10.0], dim=1)
+    logits = torch.tensor([[[0.0, LN(3.0), -50.0], [0.0, 0.0, -50.0]]], dtype=F64)
+    out = marginal_loss(pos3, logits, gt)
+    assert out["imitation"].item() == pytest.approx(0.25, abs=1e-12)
+    assert out["probability"].item() == pytest.approx((LN(4 / 3) + LN(2.0)) / 2, abs=1e-12)
+    scene = scene_loss(pos3, logits[:, 0], gt)
+    assert scene["imitation"].item() == pytest.approx(1.5, abs=1e-12)

@@ -280,3 +280,16 @@ def test_metric_orderings_and_scaling(scene, scale):
     # a perfect mode added anywhere makes every distance metric 0
     perfect = torch.cat([pred, gt[:, None]], dim=1)
     assert (_distance_metrics(perfect, gt, mask) == 0).all()
+
+
+def test_marginal_to_joint_batch_probabilities():
+    """Each sample's joint probabilities are normalized over its own modes."""
+    pred, _ = _example()
+    pred = pred.repeat(3, 1, 1, 1, 1)
+    probs = torch.tensor(
+        [[[0.2, 0.8], [0.6, 0.4]], [[0.5, 0.5], [0.9, 0.1]], [[0.7, 0.3], [0.3, 0.7]]]
+    )
+    _, p = marginal_to_joint(pred, probs)
+    # sorted products: (0.8 0.6, 0.2 0.4), (0.5 0.9, 0.5 0.1), (0.7 0.7, 0.3 0.3)
+    raw = torch.tensor([[0.48, 0.08], [0.45, 0.05], [0.49, 0.09]])
+    torch.testing.assert_close(p, raw / raw.sum(1, keepdim=True))
