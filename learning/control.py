@@ -47,6 +47,8 @@ from epo_casadi.errors import EpoError, SpecError
 from solvers.control.plan import failed_plan
 from solvers.control.types import Estimate, Observation, Plan
 
+from .layer import GameLayer
+
 __all__ = [
     "SDVPlan",
     "sdv_strategy",
@@ -321,8 +323,17 @@ class PlannerOptions:
     #: paper App. F.3 for RPI); "constant_velocity": where each other agent is after the
     #: horizon at its estimated speed and heading
     threads: int = 1  #: torch intra-op threads during a plan (1: one core)
+    layer_backend: str = "fused"  #: Gauss-Newton backend of ours' game layer while planning:
+    #: "fused" (solvers.fast_gn.FusedGN, compiled to C when a compiler is found, else
+    #: interpreted; equal to the trained backend to 1e-12 and about 3-5x less CPU per plan,
+    #: bench/bench_planning.py) or "model" (the backend the model was trained with)
 
     def __post_init__(self):
+        if self.layer_backend not in ("fused", "model"):
+            raise SpecError(
+                "planner.layer_backend",
+                f"expected 'fused' or 'model', got {self.layer_backend!r}",
+            )
         if self.others_goals not in ("given", "constant_velocity"):
             raise SpecError(
                 "planner.others_goals",
@@ -338,6 +349,27 @@ class PlannerOptions:
         if unknown:
             raise SpecError("planner", f"unknown option(s) {unknown}; allowed: {sorted(names)}")
         return cls(**d)
+
+
+def _fused_layer(layer: GameLayer) -> GameLayer:
+    """``layer`` with the fused Gauss-Newton backend (compiled when a C compiler is found):
+    the same solve to rounding, built for one problem at a time (planning), not for the
+    large batches of training."""
+    from solvers.codegen import CompilerError, find_compiler
+    from solvers.fast_gn import FusedGN
+
+    try:
+        find_compiler()
+        compiled = True
+    except CompilerError:
+        compiled = False
+    return GameLayer(
+        layer.game,
+        layer.options,
+        backward=layer.backward,
+        on_invalid=layer.on_invalid,
+        backend=FusedGN(layer.game, compiled=compiled),
+    )
 
 
 #: world name (``World.name``) -> the dataset scenario whose scenes it plays, where they differ
@@ -419,6 +451,10 @@ class NetworkPlanner:
         if not isinstance(options, PlannerOptions):
             raise SpecError("options", f"expected PlannerOptions, got {type(options).__name__}")
         self.model, self.spec, self.options = model.eval(), spec, options
+        if options.layer_backend == "fused" and isinstance(
+            getattr(model, "layer", None), GameLayer
+        ):
+            model.layer = _fused_layer(model.layer)
         self.world = None
         self._ego: list[np.ndarray] = []
         self._goals: np.ndarray | None = None

@@ -314,3 +314,28 @@ def test_a_closed_loop_crossing_episode_is_planned_by_the_network_and_repeats(ru
     x, s1 = a.obs_ego[:, None], a.plan_states[:, :1]
     first = x[..., :2] + DT * x[..., 2:3] * np.stack([np.cos(x[..., 3]), np.sin(x[..., 3])], -1)
     np.testing.assert_allclose(s1[..., :2], first, atol=1e-5)
+
+
+def test_fused_layer_backend_plans_as_the_trained_backend(runs, sample):
+    """Planning swaps ours' layer to the fused Gauss-Newton backend (one problem at a time
+    is its strength); the plan equals the trained (structured) backend's to rounding."""
+    from solvers.fast_gn import FusedGN
+    from solvers.structured import StructuredGN
+
+    hist, goals = sample["history"][0], sample["goals"][0]
+    world = StubWorld(goals)
+    fused = load_planner(runs["epo"], world)
+    trained = load_planner(runs["epo"], world, layer_backend="model")
+    assert isinstance(fused.model.layer.core.backend, FusedGN)
+    assert isinstance(trained.model.layer.core.backend, StructuredGN)
+    obs, est = _observe(hist[:, 0], hist[:, 1:].transpose(1, 0, 2), t=1.0)
+    for p in (fused, trained):
+        p.reset(world)
+    a, b = fused.plan(obs, est), trained.plan(obs, est)
+    assert a.ok and b.ok, (a.message, b.message)
+    assert not np.allclose(a.controls, 0)  # a real plan, not a trivial one
+    np.testing.assert_allclose(a.states, b.states, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.predictions, b.predictions, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.probabilities, b.probabilities, rtol=0, atol=1e-6)
+    with pytest.raises(SpecError, match="planner.layer_backend"):
+        load_planner(runs["epo"], world, layer_backend="fast")
