@@ -4,6 +4,7 @@ Not a test. Run from the repository root::
 
     .venv/bin/python bench/bench_ilq.py            # RPI-like N=2 K=40; N=3, 4 (K=40); N=3 K=100
     .venv/bin/python bench/bench_ilq.py --quick    # smoke run: fewer repeats, no K=100 row
+    .venv/bin/python bench/bench_ilq.py --quick --k100   # the same with the K=100 row
 
 Games (App. F.3 features: goal, velocity, acceleration, turn rate, soft bounds on speed,
 acceleration and turn rate, pairwise collision at every step; unicycles, dt = 0.1 s):
@@ -17,11 +18,13 @@ acceleration and turn rate, pairwise collision at every step; unicycles, dt = 0.
 Every solve starts from zero controls (collision terms active on the way) and runs to the
 default tolerance ``max |a| <= 1e-5`` (``--tol`` changes it; ``--only-k100`` times only the
 3-player, 100-step game). Paths: ``numpy`` (Riccati recursion in numpy),
-``C`` (``compiled=True``: generated-C Riccati stage, compiled once before timing and
-reported as ``compile s``) and the reference ``LM``: the potential minimizer by
+``C`` (``compiled=True``: generated-C Riccati recursion, quadratization and rollout,
+compiled, or loaded from the disk cache, once before timing and reported as ``compile s``) and the reference ``LM``: the potential minimizer by
 :func:`solvers.lm.solve_lm` with the structured backend (interpreted), same start. The
 printed ratio is ``LM / C``. Times are wall-clock medians over repeats (paths take turns
-within each repeat), BLAS limited to one thread. Building the CasADi functions (once per
+within each repeat), with the CPU time of the process (``time.process_time``) next to them
+(``cpu``: less sensitive to other jobs on a shared machine; ``compile cpu s`` includes the C
+compiler's child process), BLAS limited to one thread. Building the CasADi functions (once per
 game) is excluded and reported as ``build s``.
 """
 
@@ -105,9 +108,13 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
         t = time.perf_counter()
         solver = get_solver(game)
         build = time.perf_counter() - t
-        t = time.perf_counter()
+        t, c0 = time.perf_counter(), os.times()
         solver.compile()
         compile_s = time.perf_counter() - t
+        c1 = os.times()  # the C compiler runs in a child process
+        compile_cpu = (c1.user + c1.system + c1.children_user + c1.children_system) - (
+            c0.user + c0.system + c0.children_user + c0.children_system
+        )
         paths = {
             "numpy": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol}),
             "C": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol, "compiled": True}),
@@ -117,11 +124,13 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
             paths["LM"] = lambda g=game, p=p, o=lm_opts: solve_lm(g, p, options=o)
         last = {k: f() for k, f in paths.items()}  # warm-up (and the results)
         times = {k: [] for k in paths}
+        cpu = {k: [] for k in paths}
         for _ in range(repeats):
             for k, f in paths.items():
-                t = time.perf_counter()
+                t, c = time.perf_counter(), time.process_time()
                 last[k] = f()
                 times[k].append(time.perf_counter() - t)
+                cpu[k].append(time.process_time() - c)
         r_np, r_c = last["numpy"], last["C"]
         assert np.allclose(r_np.controls, r_c.controls, atol=1e-8), name
         row = {
@@ -132,12 +141,16 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
             "status": r_c.status.value,
             "build s": build,
             "compile s": compile_s,
+            "compile cpu s": compile_cpu,
             "numpy ms": _median_ms(times["numpy"]),
+            "numpy cpu ms": _median_ms(cpu["numpy"]),
             "C ms": _median_ms(times["C"]),
+            "C cpu ms": _median_ms(cpu["C"]),
             "C ms/iter": _median_ms(times["C"]) / max(int(r_c.iterations), 1),
         }
         if with_lm:
             row["LM ms"] = _median_ms(times["LM"])
+            row["LM cpu ms"] = _median_ms(cpu["LM"])
             row["LM iters"] = int(last["LM"].iterations)
             row["LM / C"] = row["LM ms"] / row["C ms"]
         rows.append(row)
@@ -149,10 +162,10 @@ def _print(rows, header=True):
     cols = list(rows[0])
     fmt = {k: ("{:.2f}" if isinstance(rows[0][k], float) else "{}") for k in cols}
     if header:
-        print(" | ".join(f"{c:>10s}" for c in cols))
-        print("-|-".join("-" * 10 for _ in cols))
+        print(" | ".join(f"{c:>12s}" for c in cols))
+        print("-|-".join("-" * 12 for _ in cols))
     for r in rows:
-        print(" | ".join(f"{fmt[c].format(r[c]):>10s}" for c in cols), flush=True)
+        print(" | ".join(f"{fmt[c].format(r[c]):>12s}" for c in cols), flush=True)
 
 
 def main(argv=None):
@@ -162,6 +175,7 @@ def main(argv=None):
     ap.add_argument("--no-lm", action="store_true", help="skip the LM reference")
     ap.add_argument("--tol", type=float, default=1e-5, help="iLQ tolerance on max |a|")
     ap.add_argument("--only-k100", action="store_true", help="only the N=3, K=100 game")
+    ap.add_argument("--k100", action="store_true", help="add the N=3, K=100 game to --quick")
     a = ap.parse_args(argv)
     repeats = 3 if a.quick else a.repeats
     cases = [
@@ -169,7 +183,7 @@ def main(argv=None):
         ("circle-3", circle_game(3, 40)),
         ("circle-4", circle_game(4, 40)),
     ]
-    if not a.quick:
+    if not a.quick or a.k100:
         cases.append(("circle-3", circle_game(3, 100)))
     if a.only_k100:
         cases = [("circle-3", circle_game(3, 100))]

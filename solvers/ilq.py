@@ -104,9 +104,15 @@ Speed
     game: one call returns the costs, the stage Hessian nonzeros and the dynamics Jacobians
     (``Function.map`` over stages), one call rolls out the feedback policy; numpy scatters
     the nonzeros with precomputed indices. The Riccati recursion runs in numpy (players
-    stacked), or, with ``compiled=True``, as a generated-C stage function folded over the
-    horizon (``Function.mapaccum``, :mod:`solvers.codegen`: needs a C compiler, compiled
-    once per game structure and cached on disk; a singular stage falls back to numpy).
+    stacked, the reference). With ``compiled=True`` everything per stage is generated C,
+    compiled once per game structure and cached on disk (:mod:`solvers.codegen`, needs a C
+    compiler), so Python runs a few calls per iteration and none per stage: the Riccati
+    recursion as one stage function folded over the horizon (``Function.mapaccum``; a
+    singular stage falls back to numpy), the rollout likewise, and the quadratization as
+    stage functions found from the graph and mapped over the stages
+    (:mod:`solvers.fast_ilq`). The compiled path equals the interpreted one to rounding
+    (``tests/test_ilq_fast.py``); it is an option, not the default, because the first
+    call of each structure compiles for about 1 to 5 s (docs/ilq.md).
 """
 
 from __future__ import annotations
@@ -164,7 +170,7 @@ class ILQOptions:
     max_state_step: float = math.inf  #: trust region: largest |X_new - X| (elementwise) accepted
     regularization: float = 0.0  #: mu0 >= 0 always added to every player's own block H_ii
     min_curvature: float = 1e-8  #: smallest allowed pivot of H_ii before a shift is added
-    compiled: bool = False  #: Riccati recursion as generated C (needs a C compiler; cached on disk)
+    compiled: bool = False  #: per-stage work as generated C (needs a C compiler; cached on disk)
 
     def __post_init__(self):
         _num("max_iter", self.max_iter, 0, MAX_STEPS, integer=True)
@@ -314,6 +320,9 @@ class ILQSolver:
         self._build_rollout()
         self._build_riccati_indices()
         self._compiled: _CompiledRiccati | None = None
+        self._cquad = None  # solvers.fast_ilq.CompiledQuadratize after compile(), if it applies
+        self._croll = None  # solvers.fast_ilq.CompiledRollout after compile()
+        self.quad_backend = "interpreted"  #: quadratization used with compiled=True
 
     # ---- checks ---------------------------------------------------------------------------
     @staticmethod
@@ -446,10 +455,12 @@ class ILQSolver:
             .reshape(-1)
             .astype(np.intp)
         )
+        r_traj = None
         if self.custom_costs:
             E = ca.SX(np.nan)
         else:
-            E = 0.5 * ca.sumsqr(g.function("traj_residual")(x_flat, u_flat, p))
+            r_traj = g.function("traj_residual")(x_flat, u_flat, p)
+            E = 0.5 * ca.sumsqr(r_traj)
         self.quad = _Call(
             ca.Function(
                 "ilq_quadratize",
@@ -461,6 +472,8 @@ class ILQSolver:
         )
         self._lam_src = np.concatenate(src).astype(np.intp)
         self._lam_tgt = np.concatenate(tgt).astype(np.intp)
+        # the symbolic pieces, for the compiled stage-split quadratization (solvers.fast_ilq)
+        self._quad_sym = (Xs, Us, p, C, E, ca.vertcat(*outs), phi_out, r_traj)
         self.Lam = np.zeros(n_stage + N * n * n)  # stages 0..K-1, then the terminal stage
         self.Phi = np.zeros((K, self.nxs + 1, n))
         self.Phi[:, self.nxs, n - 1] = 1.0
@@ -533,13 +546,25 @@ class ILQSolver:
             ).astype(np.intp)
 
     # ---- numeric pieces ---------------------------------------------------------------------
-    def rollout(self, p, Xr, Ur, PA, eps):
-        """Closed-loop rollout ``U_k = Ur_k - P_k (X_k - Xr_k) - eps a_k``: ``(X, U)``."""
-        X, U = self.roll(p[self._x0_idx], Xr, Ur, PA, eps)
+    def rollout(self, p, Xr, Ur, PA, eps, compiled: bool = False):
+        """Closed-loop rollout ``U_k = Ur_k - P_k (X_k - Xr_k) - eps a_k``: ``(X, U)``.
+
+        ``compiled``: the generated-C stage fold when :meth:`compile` built it.
+        """
+        if compiled and self._croll is not None:
+            X, U = self._croll(p[self._x0_idx], Xr, Ur, PA, eps)
+        else:
+            X, U = self.roll(p[self._x0_idx], Xr, Ur, PA, eps)
         return X.reshape(self.K + 1, self.nx).copy(), U.reshape(self.K, self.nu).copy()
 
-    def quadratize(self, X, U, p):
-        """Costs ``C`` and energy ``E`` at ``(X, U)``; fills ``self.Lam`` and ``self.Phi``."""
+    def quadratize(self, X, U, p, compiled: bool = False):
+        """Costs ``C`` and energy ``E`` at ``(X, U)``; fills ``self.Lam`` and ``self.Phi``.
+
+        ``compiled``: with the generated-C stage functions when :meth:`compile` built them
+        (:mod:`solvers.fast_ilq`), else the interpreted trajectory function.
+        """
+        if compiled and self._cquad is not None:
+            return self._cquad(X, U, p)
         C, E, lam, phi = self.quad(X, U, p)
         self.Lam[self._lam_tgt] = lam[self._lam_src]
         self.Phi.reshape(-1)[self._phi_tgt] = phi
@@ -623,9 +648,20 @@ class ILQSolver:
         return PA, mus, ok
 
     def compile(self) -> ILQSolver:
-        """Run the Riccati recursion as generated C from now on (see :class:`_CompiledRiccati`)."""
+        """Build the generated-C paths used with ``compiled=True``.
+
+        The Riccati recursion (:class:`_CompiledRiccati`), the rollout (a stage folded over
+        the horizon) and, where the costs split into stage functions, the quadratization
+        (:mod:`solvers.fast_ilq`; :attr:`quad_backend` is then ``"compiled"``). All are
+        cached on disk per structure.
+        """
         if self._compiled is None:
+            from . import fast_ilq
+
             self._compiled = _CompiledRiccati(self)
+            self._cquad = fast_ilq.build(self, *self._quad_sym)
+            self._croll = fast_ilq.CompiledRollout(self)
+            self.quad_backend = "interpreted" if self._cquad is None else "compiled"
         return self
 
     # ---- the solve ------------------------------------------------------------------------
@@ -652,13 +688,18 @@ class ILQSolver:
         p = P[0]
         _, Ubar = to_stages(g, None, U0[0])
         Xbar, Ubar = self.rollout(
-            p, np.zeros((self.K + 1, self.nx)), Ubar, np.zeros((self.K, self.nu, self.nxs + 1)), 0.0
+            p,
+            np.zeros((self.K + 1, self.nx)),
+            Ubar,
+            np.zeros((self.K, self.nu, self.nxs + 1)),
+            0.0,
+            opts.compiled,
         )
         mu0, delta = float(opts.regularization), float(opts.min_curvature)
         mu_run = mu0  # raised 10x when a backward or forward pass fails, lowered after success
 
         def linearize(X, U):
-            C, E = self.quadratize(X, U, p)
+            C, E = self.quadratize(X, U, p, opts.compiled)
             PA, mu, ok = backward(mu_run, delta)
             res = float(np.max(np.abs(PA[:, :, -1]))) if self.K else 0.0
             finite = ok and math.isfinite(res) and bool(np.isfinite(C).all())
@@ -715,7 +756,7 @@ class ILQSolver:
             eps, accepted = float(opts.step_size), None
             for _trial in range(opts.max_backtracks + 1):
                 with np.errstate(all="ignore"):
-                    Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps)
+                    Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps, opts.compiled)
                     good = bool(np.isfinite(Xn).all() and np.isfinite(Un).all())
                     if good and opts.max_state_step < math.inf:
                         good = float(np.max(np.abs(Xn - Xbar))) <= opts.max_state_step
@@ -833,7 +874,11 @@ class _CompiledRiccati:
 
     The stage function does the numpy recursion's algebra in CasADi SX with the structural
     zeros of ``L_ik`` and ``Phi_k`` (union pattern over stages) and the same own-block shift
-    (closed ``LDL'`` pivots, Gershgorin). A stage whose coupled system is singular is not
+    (closed ``LDL'`` pivots, Gershgorin). The symmetric products ``T_i = L_ik + Phi' Z Phi``
+    and ``Z_ik = Psi' T_i Psi`` are computed on their upper triangle and mirrored
+    (:func:`_sym_product`: 14.7k instead of 23.3k instructions for 3 unicycles, compile
+    2.3 s instead of 3.9 s of CPU at ``-O1``; ``-O2``/``-O3`` took twice as long to compile
+    and ran within 10 %). A stage whose coupled system is singular is not
     retried inside; the caller sees non-finite gains and the numpy recursion takes over.
     """
 
@@ -874,7 +919,7 @@ class _CompiledRiccati:
             L = ca.SX(ca.Sparsity.triplet(n, n, r.tolist(), c.tolist()), lam[off : off + r.size])
             off += r.size
             Z = Zin[:, i * (nx + 1) : (i + 1) * (nx + 1)]
-            T = L + ca.mtimes(Ph.T, ca.mtimes(Z, Ph))
+            T = L + _sym_product(Ph, ca.mtimes(Z, Ph))
             s0, s1 = int(s.uo[i]), int(s.uo[i + 1])
             H = T[s0:s1, s0:s1] + mu0 * ca.SX.eye(s1 - s0)
             piv = _ldl_pivots(H)
@@ -892,16 +937,18 @@ class _CompiledRiccati:
         Psi = ca.vertcat(-PA, ca.SX.eye(nx + 1))
         Zout = []
         for T in Ts:
-            Zi = ca.mtimes(Psi.T, ca.mtimes(T, Psi))
-            Zout.append(0.5 * (Zi + Zi.T))
+            Zout.append(_sym_product(Psi, ca.mtimes(T, Psi)))
         stage = ca.Function(
             "ilq_riccati_stage",
             [Zin, lam, phi, mu0, delta],
             [ca.horzcat(*Zout), ca.vec(PA.T), ca.vertcat(*mus)],
         )
+        self.n_instructions = stage.n_instructions()
+        # The fold over K stages is a loop in the generated C around one stage function, so
+        # compile time does not grow with K (the library is cached per structure, K included:
+        # folding a K-independent compiled stage in CasADi's VM cost 0.8 us more per stage)
         acc = stage.mapaccum("ilq_riccati", K)  # CasADi may nest and rename it for large K
         acc = ca.Function("ilq_riccati", acc.mx_in(), acc.call(acc.mx_in()))
-        self.n_instructions = stage.n_instructions()
         f = compile_functions([acc], "ilq_riccati", optimize="-O1")["ilq_riccati"]
         self.call = _Call(f)
 
@@ -922,6 +969,24 @@ class _CompiledRiccati:
         if not ok:  # singular stage: the numpy recursion retries with larger shifts
             return s._numpy_backward(mu0, delta)
         return PA, mu, ok
+
+
+def _sym_product(A, B):
+    """``A' B`` for a product known to be symmetric: the upper triangle, mirrored.
+
+    Every entry ``a <= b`` is one dot product of columns; ``(b, a)`` reuses it, so the
+    stage function does about half the work of ``mtimes(A.T, B)`` (and ``Z`` and ``T`` are
+    exactly symmetric).
+    """
+    m = A.shape[1]
+    out = ca.SX(m, m)
+    for a in range(m):
+        for b in range(a, m):
+            v = ca.dot(A[:, a], B[:, b])
+            out[a, b] = v
+            if a != b:
+                out[b, a] = v
+    return out
 
 
 def _ldl_pivots(H):
