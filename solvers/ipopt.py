@@ -12,7 +12,10 @@ matrix ``J'J`` of the objective plus the exact curvature of the state constraint
 (``hessian="gn"``). The NLP is built once per game and :class:`IpoptOptions` by
 :class:`IpoptSolver`; :func:`solve_ipopt` is the entry function and keeps one solver
 per ``(game, options)``, cached on the game. The parameters ``p`` are the NLP parameter
-``'p'``, so changing ``p`` never rebuilds anything. Shapes and index order follow
+``'p'``, so changing ``p`` never rebuilds anything. The expensive part of the set-up, the
+symbolic Hessian of the Lagrangian, is also kept on disk for large games, keyed by the
+game's structure (not its parameter values) and checked on reading (docs/solvers.md,
+"Set-up cache"); ``info["setup_s"]`` reports the set-up time. Shapes and index order follow
 :mod:`epo_casadi.game`; IPOPT solves one problem at a time, a batch ``(B, n)`` is a
 loop over its problems.
 
@@ -22,10 +25,18 @@ open-loop Nash equilibrium; check it with :func:`solvers.nash.nash_certificate`.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
+import sys
+import tempfile
 import time
+import warnings
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -34,6 +45,7 @@ from epo_casadi.errors import SpecError, check_number, short_repr
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
+from .codegen import cache_dir
 from .lm import MAX_STEPS, check_options
 from .result import SolveResult, Status, demote_nonfinite
 
@@ -136,6 +148,7 @@ class IpoptOptions:
     control_bounds: Bounds | Mapping | None = None  #: hard bounds on u_{i,k}, per agent
     state_bounds: Bounds | Mapping | None = None  #: hard bounds on x_{i,k}, k = 1..K, per agent
     linear_solver: str = "mumps"  #: IPOPT linear solver (the CasADi wheel ships "mumps")
+    cache: bool = True  #: keep large Hessians of the Lagrangian on disk (see "Set-up cache")
 
     def __post_init__(self):
         for name in ("max_iter", "acceptable_iter"):
@@ -147,6 +160,8 @@ class IpoptOptions:
             raise SpecError(
                 "ipopt.hessian", f"expected 'exact' or 'gn', got {short_repr(self.hessian)}"
             )
+        if not isinstance(self.cache, bool):
+            raise SpecError("ipopt.cache", f"expected true or false, got {short_repr(self.cache)}")
         if not isinstance(self.linear_solver, str) or not self.linear_solver:
             raise SpecError(
                 "ipopt.linear_solver",
@@ -172,6 +187,7 @@ class IpoptSolver:
         if not isinstance(game, PotentialGame):
             raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
         self.game = game
+        t0, c0 = time.perf_counter(), time.process_time()
         self.options = opts = check_options(IpoptOptions, options, "ipopt")
         sym = game.symbols
         u, p, x, E = sym["u"], sym["p"], sym["x"], sym["E"]
@@ -210,25 +226,20 @@ class IpoptSolver:
             "ipopt.acceptable_iter": opts.acceptable_iter,
             "ipopt.linear_solver": opts.linear_solver,
         }
-        if opts.hessian == "gn":
-            lam_f = ca.SX.sym("lam_f")
-            lam_g = ca.SX.sym("lam_g", g.shape[0])
-            J = ca.jacobian(sym["r"], u)
-            H = lam_f * ca.mtimes(J.T, J)
-            if rows:
-                H = H + ca.hessian(ca.dot(lam_g, g), u)[0]
-            nlp_opts["hess_lag"] = ca.Function(
-                "gn_hess_lag",
-                [u, p, lam_f, lam_g],
-                [ca.triu(H)],
-                ["x", "p", "lam_f", "lam_g"],
-                ["triu_hess_gamma_x_x"],
-            )
+        self._g = g
+        #: the Hessian of the Lagrangian handed to IPOPT (``triu``), built or loaded
+        self.hess_lag, self.setup_source = _hessian_of_lagrangian(game, g, opts)
+        nlp_opts["hess_lag"] = self.hess_lag
         self.nlpsol = ca.nlpsol("epo_ipopt", "ipopt", {"x": u, "p": p, "f": E, "g": g}, nlp_opts)
         self._rollout = BatchFunction(game.function("rollout"))
         self._costs = BatchFunction(game.function("agent_costs"))
         self._grad = BatchFunction(game.function("gradient"))
         self._energy = BatchFunction(game.function("energy"))
+        #: set-up of this solver (Hessian of the Lagrangian, built or loaded, and the
+        #: ``nlpsol``): wall and CPU seconds; ``setup_source`` says "built", "disk" or
+        #: "rebuilt" (a cache file was unreadable or corrupted and was replaced)
+        self.setup_s = time.perf_counter() - t0
+        self.setup_cpu_s = time.process_time() - c0
 
     def _bounds(self, bounds: Bounds | None, sizes: list[int], field: str):
         names = self.game.agent_names
@@ -274,7 +285,9 @@ class IpoptSolver:
         the start after IPOPT moved it inside the bounds); a shorter run repeats its
         final value. ``info``: ``return_status`` (IPOPT's string), ``lam_x`` and
         ``lam_g`` (bound and constraint multipliers), ``max_violation`` (largest bound
-        or state-constraint violation at the solution), ``options``.
+        or state-constraint violation at the solution), ``options``, ``setup_s`` (wall
+        seconds this solver's construction took, paid once per game and options) and
+        ``setup_source`` (``"built"``, ``"disk"`` or ``"rebuilt"``: the Hessian's origin).
         """
         game = self.game
         t0 = time.perf_counter()
@@ -323,9 +336,147 @@ class IpoptSolver:
                 "lam_g": np.stack([r["lam_g"] for r in runs]),
                 "max_violation": viol,
                 "options": self.options,
+                "setup_s": self.setup_s,
+                "setup_source": self.setup_source,
             },
         )
         return res[0] if single else res
+
+
+# --------------------------------------------------------------------------------------
+# the Hessian of the Lagrangian: built once per game structure, cached on disk
+# --------------------------------------------------------------------------------------
+#: a game's Hessian goes to the disk cache when ``n_u`` times the instruction count of its
+#: energy function reaches this (about 0.3 s of symbolic build; smaller ones are rebuilt)
+DISK_CACHE_MIN_WORK = 1_000_000
+#: progress lines on a terminal (stderr) for builds at least this large (same measure)
+PROGRESS_MIN_WORK = 1_000_000
+_MAGIC = b"EPO-IPOPT-HESS 1\n"
+#: how often this process built a Hessian of the Lagrangian, loaded one from the disk cache,
+#: or replaced an unreadable cache file (for tests and diagnostics)
+CACHE_STATS = {"built": 0, "disk": 0, "rebuilt": 0}
+
+
+def _progress(message: str) -> None:
+    if sys.stderr is not None and sys.stderr.isatty():
+        print(message, file=sys.stderr, flush=True)
+
+
+def _build_hessian(game: PotentialGame, g, hessian: str) -> ca.Function:
+    """``triu`` of the Hessian of ``lam_f E + lam_g' g`` (``"exact"``), or of the
+    Gauss-Newton ``lam_f J'J`` plus the constraints' exact curvature (``"gn"``)."""
+    sym = game.symbols
+    u, p = sym["u"], sym["p"]
+    lam_f = ca.SX.sym("lam_f")
+    lam_g = ca.SX.sym("lam_g", g.shape[0])
+    if hessian == "gn":
+        J = ca.jacobian(sym["r"], u)
+        H = lam_f * ca.mtimes(J.T, J)
+        if g.shape[0]:
+            H = H + ca.hessian(ca.dot(lam_g, g), u)[0]
+    else:
+        H = ca.hessian(lam_f * sym["E"] + ca.dot(lam_g, g), u)[0]
+    return ca.Function(
+        f"epo_{hessian}_hess_lag",
+        [u, p, lam_f, lam_g],
+        [ca.triu(H)],
+        ["x", "p", "lam_f", "lam_g"],
+        ["triu_hess_gamma_x_x"],
+    )
+
+
+def _structure_key(game: PotentialGame, g, hessian: str) -> str:
+    """Hash of everything the Hessian depends on: the game's symbolic graphs of ``r``,
+    ``E`` and ``g`` in ``(u, p)`` (agents, dynamics, features, pairs, horizon, dt; not
+    the parameter values, which are the symbol ``p``), the Hessian kind and CasADi."""
+    sym = game.symbols
+    f = ca.Function("epo_ipopt_nlp", [sym["u"], sym["p"]], [sym["r"], sym["E"], g])
+    h = hashlib.sha256()
+    for part in (_MAGIC.decode(), ca.__version__, hessian, f.serialize()):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()[:24]
+
+
+def _load(path: Path, game: PotentialGame, n_g: int) -> ca.Function:
+    """The Hessian stored at ``path``; ``ValueError`` if the file is not intact."""
+    data = path.read_bytes()
+    head, sep, rest = data.partition(b"\n")
+    digest, sep2, payload = rest.partition(b"\n")
+    if head + sep != _MAGIC or not sep2:
+        raise ValueError("not an epo IPOPT cache file")
+    if hashlib.sha256(payload).hexdigest().encode() != digest:
+        raise ValueError("checksum mismatch")
+    f = ca.Function.deserialize(zlib.decompress(payload).decode())
+    shapes = [(game.n_u, 1), (game.n_p, 1), (1, 1), (n_g, 1)]
+    if f.n_in() != 4 or [f.size_in(k) for k in range(4)] != shapes or f.n_out() != 1:
+        raise ValueError("the stored function has another signature")
+    if f.size_out(0) != (game.n_u, game.n_u):
+        raise ValueError("the stored Hessian has another size")
+    return f
+
+
+def _save(path: Path, f: ca.Function) -> None:
+    payload = zlib.compress(f.serialize().encode(), 1)
+    digest = hashlib.sha256(payload).hexdigest().encode()
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}_")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(_MAGIC + digest + b"\n" + payload)
+        os.replace(tmp, path)  # atomic: readers see no file or the whole file
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _hessian_of_lagrangian(game: PotentialGame, g, opts: IpoptOptions) -> tuple[ca.Function, str]:
+    """The ``hess_lag`` function for ``nlpsol`` and where it came from ("built", "disk",
+    "rebuilt"). Large ones are read from and written to the cache folder of
+    :func:`solvers.codegen.cache_dir` as ``ipopt_hess_<kind>_n<N>_k<K>_<hash>.bin``."""
+    work = game.n_u * game.function("energy").n_instructions()
+    path = None
+    source = "built"
+    if opts.cache and work >= DISK_CACHE_MIN_WORK:
+        key = _structure_key(game, g, opts.hessian)
+        try:
+            folder = cache_dir()
+        except OSError as e:  # no usable cache folder: build, as with cache=False
+            warnings.warn(f"no IPOPT cache folder ({e}); building the Hessian", stacklevel=4)
+        else:
+            path = folder / f"ipopt_hess_{opts.hessian}_n{game.N}_k{game.K}_{key}.bin"
+        if path is not None and path.exists():
+            try:
+                f = _load(path, game, g.shape[0])
+            except (ValueError, RuntimeError, OSError, zlib.error, UnicodeDecodeError) as e:
+                warnings.warn(
+                    f"IPOPT cache file {path} is unusable ({e}); rebuilding it", stacklevel=4
+                )
+                source = "rebuilt"
+            else:
+                CACHE_STATS["disk"] += 1
+                return f, "disk"
+    big = work >= PROGRESS_MIN_WORK
+    if big:
+        _progress(
+            f"epo: building the IPOPT Hessian ({opts.hessian}) for {game.N} agents, "
+            f"{game.n_u} controls ..."
+        )
+    t0 = time.perf_counter()
+    f = _build_hessian(game, g, opts.hessian)
+    CACHE_STATS[source] += 1
+    if path is not None:
+        try:
+            _save(path, f)
+        except OSError as e:  # a read-only cache folder costs a rebuild next time, no more
+            warnings.warn(f"could not write the IPOPT cache file {path}: {e}", stacklevel=4)
+            path = None
+    if big:
+        _progress(
+            f"epo: IPOPT Hessian built in {time.perf_counter() - t0:.1f} s"
+            + (f" (cached in {path.parent})" if path is not None else "")
+        )
+    return f, source
 
 
 def _solver_for(game: PotentialGame, opts: IpoptOptions) -> IpoptSolver:

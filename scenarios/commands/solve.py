@@ -394,6 +394,10 @@ def solve(
     )
     for line in summary_lines(game, data):
         click.echo(line)
+    if "setup_s" in res.info:  # IPOPT: the NLP's set-up (Hessian built or read from the cache)
+        how = {"disk": "read from the cache", "rebuilt": "rebuilt, cache file unusable"}
+        src = how.get(res.info["setup_source"], res.info["setup_source"])
+        click.echo(f"  set-up {res.info['setup_s']:.2f} s (Hessian of the Lagrangian {src})")
     if out is not None:
         write_result(data, out)
         click.echo(f"wrote {out}")
