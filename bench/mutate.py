@@ -67,6 +67,7 @@ TARGETS: dict[str, list[str]] = {
     "solvers/ilq.py": [
         "tests/test_ilq.py",
         "tests/test_ilq_results.py",
+        "tests/test_ilq_regularization.py",
         "tests/test_options.py",
     ],
     "solvers/batch.py": ["tests/test_lm.py"],
