@@ -135,6 +135,54 @@ def test_oncoming_yields_to_an_early_ego_and_goes_when_the_gap_is_large(geometry
     assert w.outcome() == "timeout" or w.outcome() == "running"
 
 
+@pytest.mark.parametrize("geometry", ["g0", "g1", "g2", "g3"])
+def test_yielding_car_stops_clear_of_the_ego_path_without_reversing(geometry):
+    from scenarios.sim.left_turn import WAIT_CLEARANCE
+
+    w = make_world("left-turn", geometry=geometry, noise_std=0.0)
+    for seed in (0, 2):  # seed 2: aggressiveness 0.93, the hardest stop
+        w.forced_decision = "yield"
+        w.reset(seed)
+        v = []
+        for _ in range(120):  # the ego brakes and stands far away
+            w.step([-5.0, 0.0])
+            v.append(w.truth()[1, 2])
+        x = w.truth()[1]
+        d = project_to_polyline(x[None, :2], w.ego_route)[1][0]
+        assert min(v) >= 0.0 and abs(v[-1]) < 1e-9  # it stopped, it never reversed
+        # its centre is clear of the ego's route by half its length, half the ego's width
+        # and a margin, and by the planners' circles (r + r + 1 m), up to 0.3 m of overshoot
+        assert d >= WAIT_CLEARANCE - 0.3 and d >= 2 * w.radii[1] + 1.0, (seed, d)
+
+
+def test_oncoming_goes_when_the_ego_stands_and_waits_clear_of_its_lane():
+    # the ego stands with its centre half a length before the conflict zone, its body
+    # 0.7 m from the oncoming car's side: a waiting ego, after ``patience`` s the car goes
+    kw = dict(geometry="g0", noise_std=0.0, ego_distance=(0.0, 0.0), ego_speed=(0.0, 0.0))
+    kw.update(other_distance=(25.0, 25.0), character=Character(0.0, 10.0, 0.2))
+    outcome = {}
+    for patience in (1.0, 100.0):
+        w = make_world("left-turn", patience=patience, **kw)
+        w.reset(0)
+        for _ in range(60):
+            w.step([0.0, 0.0])
+        s_o = project_to_polyline(w.truth()[1:, :2], w.other_route)[0][0]
+        outcome[patience] = (w.decisions[0], w.decisions[-1], s_o > w.conflict.b[1], w.outcome())
+        if patience == 1.0:  # yields at first, goes once the ego has stood still for 1 s
+            assert w.decisions.index("go") == round(patience / w.dt) - 1  # 10th decision
+    assert outcome[1.0] == ("yield", "go", True, "running")
+    assert outcome[100.0] == ("yield", "yield", False, "running")  # without it: a deadlock
+
+
+def test_slow_oncoming_start_accelerates_to_its_desired_speed():
+    w = make_world("left-turn", noise_std=0.0, other_speed=(1.0, 1.0), ego_speed=(0.0, 0.0))
+    w.reset(0)
+    assert w.truth()[1, 2] == 1.0
+    for _ in range(40):
+        w.step([0.0, 0.0])
+    assert w.truth()[1, 2] > 3.0 and w.tasks()[1].speed == w.character.desired_speed
+
+
 def test_bold_driver_forces_its_way_where_a_cautious_one_yields():
     # the ego reaches the zone in 20 / 6 = 3.3 s; the oncoming vehicle clears it in ~2.6 s
     kw = dict(geometry="g0", ego_distance=(20.0, 20.0), ego_speed=(6.0, 6.0))
@@ -193,9 +241,11 @@ def test_collision_against_a_hand_placed_overlap():
         assert w.outcome() == "collision", mode
         w.step([0.0, 0.0])
         assert w.outcome() == "collision"  # the first terminal outcome sticks
-    # circles: 2 r = 5 m; 4.9 m apart collides, 5.1 m does not (rectangles side by side do not)
-    for gap, expect in ((4.9, "collision"), (5.1, "running")):
+    # circles: 2 r = 3.5 m (default r = 1.75 m); 3.4 m apart collides, 3.6 m does not
+    # (rectangles side by side do not)
+    for gap, expect in ((3.4, "collision"), (3.6, "running")):
         w = make_world("left-turn", collision="circles", ego_distance=(30.0, 30.0))
+        assert w.radii.tolist() == [1.75, 1.75]
         w.reset(0)
         e = w.truth()[0]
         w.set_state(1, [e[0] - gap, e[1], 0.0, e[3]])

@@ -30,8 +30,17 @@ desired speed) ``margin`` s before the ego (at constant speed) reaches it, where
 runs from ``margin[0]`` (``g = 0``, cautious) to ``margin[1]`` (``g = 1``, bold, negative:
 it forces its way); otherwise it yields: IDM towards a virtual standing obstacle that stops
 it at its wait point (half a length before the conflict zone or at the crossing road's
-edge, whichever comes first). An ego standing still before the zone never reaches it, so
-the oncoming vehicle then goes. The conflict zone is where the two routes' centre lines
+edge, whichever comes first, set back further where needed so that its centre is
+``WAIT_CLEARANCE`` = 5 m, half its length + half the ego's width + 1.5 m, from the ego's
+route: a waiting car never blocks the turn). A yielding car stops; it never reverses (its
+acceleration is limited to what stops it within the step). An ego standing still before
+the zone never reaches it, so the oncoming vehicle then goes; so does it once the ego (as
+seen) has stood still for ``patience`` s with its body at least ``WAIT_GAP`` = 0.5 m from
+the oncoming car's side of the lane, before crossing it (an ego waiting at the edge of the
+zone: without this rule both would wait for each other). The oncoming car starts at its
+desired speed, or at ``other_speed`` (a slow start: it then accelerates, and a
+constant-velocity prediction is wrong). highway-env's IDM also brakes for the ego when the
+ego is on its lane. The conflict zone is where the two routes' centre lines
 are closer than 2.5 m (a vehicle width and a margin, less than any lane width, so adjacent
 parallel lanes do not conflict); reach / clear times add half a vehicle length each side.
 
@@ -43,8 +52,12 @@ speed (:meth:`LeftTurnWorld.tasks`, the oracle's privilege).
 
 Collisions: ``collision="rectangles"`` (default) is highway-env's crash flag (oriented 5 m x
 2 m rectangles, ``Road.step``); ``"circles"``: the circles of ``radii`` overlap. The
-planners' ``radii`` (default 2.5 m = L / 2, the paper's over-approximation) do not change
-the rectangle test. After a crash highway-env brakes the crashed vehicles to a stop.
+planners' ``radii`` do not change the rectangle test. Default ``radius`` 1.75 m = (L/2 +
+W/2) / 2: two such circles touch at 3.5 m, the centre distance at which two cars meeting at
+a right angle (the left turn's conflict) touch; with the planners' 1 m margin they keep a
+waiting car (5 m from the route) out of reach. The paper's highway choice r = L / 2 =
+2.5 m (contact at 5 m, nose to tail) made the ego stop inside the zone for a waiting car
+and deadlock. After a crash highway-env brakes the crashed vehicles to a stop.
 
 Outcome (first terminal one sticks): ``collision``; ``off_road`` when the ego is more than
 ``off_road_margin`` beyond the edge of every lane; ``success`` when it has driven
@@ -85,6 +98,13 @@ from .common import (
 __all__ = ["Intersection", "GEOMETRIES", "LeftTurnOptions", "LeftTurnWorld"]
 
 LENGTH = 5.0  # highway-env Vehicle.LENGTH
+WIDTH = 2.0  # highway-env Vehicle.WIDTH
+#: m, the least distance from a yielding car's centre to the ego's route centre line: half
+#: its length + half the ego's width + 1.5 m, so the ego passes a waiting car with room
+WAIT_CLEARANCE = LENGTH / 2 + WIDTH / 2 + 1.5
+#: m, an ego standing still with its body this far from the oncoming car's side is waiting
+WAIT_GAP = 0.5
+IDM_OVERSHOOT = 1.0  # m, how far IDM (not reversing) stops past a standing obstacle's gap
 BRAKE = 5.0  # m/s^2, the braking a committed driver would need (IDM's COMFORT_ACC_MIN)
 LAT_ACC = 3.0  # m/s^2, lateral acceleration that sets the turn's speed limit
 CLEARANCE = 2.5  # m, centre lines closer than this form the conflict zone (width 2 + 0.5)
@@ -149,16 +169,20 @@ class LeftTurnOptions:
     ego_distance: tuple[float, float] = (12.0, 30.0)  #: ego centre to the conflict zone (m)
     ego_speed: tuple[float, float] = (3.0, 7.0)  #: initial ego speed (m/s)
     other_distance: tuple[float, float] = (20.0, 55.0)  #: oncoming centre to the zone (m)
+    #: initial oncoming speed range (m/s); None: its desired speed. A slow start then
+    #: accelerates (IDM) to the desired speed: a constant-velocity prediction misses that
+    other_speed: tuple[float, float] | None = None
     aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the oncoming character
     desired_speed: tuple[float, float] = (0.7, 1.0)  #: range, fraction of the speed limit
     reaction: tuple[float, float] = (0.2, 1.0)  #: range of its reaction time (s)
     character: Character | None = None  #: a fixed oncoming character (overrides the ranges)
     margin: tuple[float, float] = (2.0, -1.0)  #: accepted time margin (s) at g = 0 and g = 1
-    radius: float = 2.5  #: circle radius of each vehicle for the planners (m)
+    radius: float = 1.75  #: circle radius of each vehicle for the planners (m), see below
     collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
     goal_distance: float = 15.0  #: success: driven this far along the exit lane (m)
     off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
     n_path: int = 60  #: points of each AgentTask path
+    patience: float = 1.0  #: s the oncoming driver waits for an ego standing before the zone
 
     def __post_init__(self):
         p = "left-turn"
@@ -181,7 +205,10 @@ class LeftTurnOptions:
             ("desired_speed", 0.05, 1.5),
             ("reaction", 0.0, 5.0),
             ("margin", -10.0, 10.0),
+            ("other_speed", 0.0, 40.0),
         ):
+            if getattr(self, name) is None and name == "other_speed":
+                continue
             val = check_range(f"{p}.{name}", getattr(self, name), lo, hi, name != "margin")
             object.__setattr__(self, name, val)
         if self.character is not None and not isinstance(self.character, Character):
@@ -194,6 +221,7 @@ class LeftTurnOptions:
         check_number(f"{p}.goal_distance", self.goal_distance, lo=0.0)
         check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
         check_number(f"{p}.n_path", self.n_path, lo=2, integer=True)
+        check_number(f"{p}.patience", self.patience, lo=0.0)
 
     @property
     def intersection(self) -> Intersection:
@@ -295,12 +323,12 @@ class LeftTurnWorld:
         goal = rm.lane("ego_exit").point(o.goal_distance)
         self.ego_task = rm.task(self.ego_route_ids, n_points=o.n_path, radius=o.radius, goal=goal)
         self._zones = []
-        for i in range(self.geometry.lanes):
+        for i, stop in enumerate(self._stops):
             route = rm.route((f"oncoming{i}_approach", f"oncoming{i}_through"))
             zone = rm.conflict_zone(self.ego_route, route, clearance=CLEARANCE)
             if zone is None:  # pragma: no cover - the turn always crosses the oncoming lanes
                 raise SpecError("left-turn.geometry", f"the turn misses oncoming lane {i}")
-            self._zones.append((route, zone))
+            self._zones.append((route, zone, _wait_point(route, self.ego_route, zone, stop)))
         self.sensor = Sensor(1, o.noise_std, o.dropout_prob, o.dropout_burst)
         #: "go" / "yield" overrides the oncoming driver's gap rule while it is not committed
         #: (demonstrations replay the other outcome, scenarios/left_turn.py); None: its rule
@@ -314,7 +342,7 @@ class LeftTurnWorld:
         g_scene, g_char, g_sense = seeds(seed, 3)
         geo = self.geometry
         self.lane_i = int(g_scene.integers(geo.lanes))
-        self.other_route, self.conflict = self._zones[self.lane_i]
+        self.other_route, self.conflict, self._s_wait = self._zones[self.lane_i]
         zone: ConflictZone = self.conflict
         d_e = float(g_scene.uniform(*o.ego_distance))
         v_e = float(g_scene.uniform(*o.ego_speed))
@@ -326,21 +354,24 @@ class LeftTurnWorld:
             o.reaction,
         )
         ch = self.character
+        app = (f"sb{self.lane_i}_a", f"sb{self.lane_i}_s", 0)
         self.road = H.Road(
             network=self.network, np_random=np.random.RandomState(int(g_scene.integers(2**31)))
         )
+        v_o = min(ch.desired_speed, self.network.get_lane(app).speed_limit)
+        if o.other_speed is not None:
+            v_o = float(g_scene.uniform(*o.other_speed))
         s_e = max(zone.a[0] - LENGTH / 2 - d_e, 0.0)
         pe, he = _pose(self.ego_route, s_e)
         self.ego = H.Vehicle(self.road, pe, heading=he, speed=v_e)
         s_o = max(zone.b[0] - LENGTH / 2 - d_o, 0.0)
         po, ho = _pose(self.other_route, s_o)
-        app = (f"sb{self.lane_i}_a", f"sb{self.lane_i}_s", 0)
         thr = (f"sb{self.lane_i}_s", f"sb{self.lane_i}_b", 0)
         drv = H.Driver(
             self.road,
             po,
             heading=ho,
-            speed=min(ch.desired_speed, self.road.network.get_lane(app).speed_limit),
+            speed=v_o,
             target_lane_index=app,
             target_speed=ch.desired_speed,
             route=[app, thr],
@@ -351,11 +382,11 @@ class LeftTurnWorld:
         drv.COMFORT_ACC_MAX = 2.0 + 2.0 * ch.aggressiveness
         self.driver = drv
         self.road.vehicles = [self.ego, drv]
-        # the wait point: half a length before the zone, or the stop line if that comes first
-        self._s_wait = min(self._stops[self.lane_i], zone.b[0] - LENGTH / 2 - 0.5)
-        # IDM stops a jam distance (DISTANCE_WANTED) behind a standing obstacle
+        # IDM stops about a jam distance (DISTANCE_WANTED) behind a standing obstacle; without
+        # reversing it overshoots that by up to about IDM_OVERSHOOT
+        s_obstacle = self._s_wait + drv.DISTANCE_WANTED - IDM_OVERSHOOT
         self._stop_obstacle = H.Obstacle(
-            self.road, _pose(self.other_route, self._s_wait + drv.DISTANCE_WANTED, extend=True)[0]
+            self.road, _pose(self.other_route, s_obstacle, extend=True)[0]
         )
         self.sensor.reset(g_sense)
         self.t, self.k = 0.0, 0
@@ -363,7 +394,8 @@ class LeftTurnWorld:
         self.committed = False
         self.decision = "go"
         self.decisions: list[str] = []
-        self._ego_seen: list[tuple[float, float]] = []
+        self._ego_seen: list[tuple[float, float, float]] = []
+        self._still = 0.0  # s the ego (as seen) has stood still clear of the oncoming lane
         self._ready = True
         self._decide()
         return self._observe()
@@ -376,6 +408,9 @@ class LeftTurnWorld:
             raise SpecError("command", f"expected 2 finite numbers (a, delta), got {command!r}")
         self.ego.act({"acceleration": float(u[0]), "steering": float(u[1])})
         self.road.act()
+        # a yielding car stops, it does not reverse (IDM overshoots its stop and backs up)
+        acc = self.driver.action.get("acceleration", 0.0)
+        self.driver.action["acceleration"] = max(acc, -max(self.driver.speed, 0.0) / self.dt)
         self.road.step(self.dt)
         self.t = (self.k + 1) * self.dt
         self.k += 1
@@ -453,17 +488,25 @@ class LeftTurnWorld:
         """The oncoming driver's go / yield decision (module docstring)."""
         ch, drv, zone = self.character, self.driver, self.conflict
         s_e = self.progress()
-        self._ego_seen.append((s_e, float(self.ego.speed)))
+        corners = _corners(self.ego.position, self.ego.heading)
+        gap = float(project_to_polyline(corners, self.other_route)[1].min()) - WIDTH / 2
+        self._ego_seen.append((s_e, float(self.ego.speed), gap))
         lag = int(round(ch.reaction / self.dt))
-        s_seen, v_seen = self._ego_seen[max(0, len(self._ego_seen) - 1 - lag)]
+        s_seen, v_seen, gap_seen = self._ego_seen[max(0, len(self._ego_seen) - 1 - lag)]
         s_o = float(project_to_polyline(drv.position[None], self.other_route)[0][0])
         v_o = float(drv.speed)
         if not self.committed:
             dist = self._s_wait - s_o
             late = self.decision == "go" and v_o * v_o / (2 * BRAKE) > dist
             self.committed = dist <= 0.0 or late
+        # an ego that stands still, its body at least WAIT_GAP from our side, before it
+        # crossed our lane, is waiting for us (after ``patience`` s): we go
+        waiting = v_seen <= 0.1 and gap_seen >= WAIT_GAP and s_seen < zone.a[1]
+        self._still = self._still + self.dt if waiting else 0.0
         if not self.committed:
             t_e_reach, t_e_clear = zone_times(s_seen, v_seen, zone.a, LENGTH / 2)
+            if self._still >= self.options.patience - 1e-9:
+                t_e_reach = math.inf
             t_o_clear = time_to_cover(
                 zone.b[1] + LENGTH / 2 - s_o, v_o, drv.COMFORT_ACC_MAX, ch.desired_speed
             )
@@ -473,6 +516,25 @@ class LeftTurnWorld:
                 self.decision = self.forced_decision
         drv.stop_obstacle = None if self.decision == "go" else self._stop_obstacle
         self.decisions.append(self.decision)
+
+
+def _corners(position: np.ndarray, heading: float) -> np.ndarray:
+    """The four corners ``(4, 2)`` of a LENGTH x WIDTH vehicle."""
+    c, s = math.cos(heading), math.sin(heading)
+    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [LENGTH / 2, WIDTH / 2]
+    return position + local @ np.array([[c, s], [-s, c]])
+
+
+def _wait_point(route: np.ndarray, ego_route: np.ndarray, zone: ConflictZone, stop: float) -> float:
+    """Arc length of the oncoming car's wait point on ``route``: half a length (and 0.5 m)
+    before the conflict zone or the stop line, whichever comes first, and set back further
+    if needed so that its centre is :data:`WAIT_CLEARANCE` from the ego's route."""
+    s_max = min(stop, zone.b[0] - LENGTH / 2 - 0.5)
+    s = np.arange(s_max, 0.0, -0.05)
+    pts = np.stack([_pose(route, x)[0] for x in s])
+    d = project_to_polyline(pts, ego_route)[1]
+    ok = np.flatnonzero(d >= WAIT_CLEARANCE)
+    return float(s[ok[0]]) if ok.size else 0.0
 
 
 def _pose(route: np.ndarray, s: float, extend: bool = False) -> tuple[np.ndarray, float]:

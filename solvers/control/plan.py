@@ -83,7 +83,7 @@ class PlannerOptions:
     path_points: int = 10  #: vertices of each agent's lane window (a fixed parameter size)
     path_behind: float = 3.0  #: metres of lane kept behind an agent's projection
     path_ahead: float = 10.0  #: metres of lane beyond max(v, speed) * horizon
-    w_path: float = 1.0  #: weight of the distance to the lane centre line
+    w_path: float = 5.0  #: weight of the distance to the lane centre line
     w_vref: float = 0.6  #: weight of speed - lane speed
     w_velocity: float = 0.05  #: weight of the speed itself
     w_acceleration: float = 0.5  #: weight of the acceleration
@@ -91,7 +91,7 @@ class PlannerOptions:
     w_turn_rate: float = 1.0  #: weight of the turn rate
     w_turn_acceleration: float = 0.1  #: weight of the turn acceleration
     w_reverse: float = 5.0  #: weight of max(0, -v) (no reversing)
-    w_collision: float = 20.0  #: weight of the collision penetration
+    w_collision: float = 50.0  #: weight of the collision penetration
     collision_margin: float = 1.0  #: metres added to r_i + r_j in the collision feature
     steps: int = 10  #: LM steps per period (warm-started)
     start_acceleration: float = 2.0  #: oracle: |a| of the "ego first" / "others first" starts
