@@ -100,8 +100,10 @@ class PlannerOptions:
     temperature: float = 1.0  #: oracle: mode weights exp(-(E - E_min) / temperature)
     first_steps: int = 100  #: LM steps of a cold start (first period, after a failure)
     gtol: float = 1e-6  #: LM gradient tolerance (stops early once met)
-    backend: str = "structured"  #: LM Gauss-Newton backend: "structured" or "dense"
-    compiled: bool = False  #: structured backend as generated C (needs gcc)
+    backend: str = "fused"  #: LM Gauss-Newton backend: "fused" (one problem at a time is its
+    #: strength; equal to "structured" to 1e-12), "structured" or "dense"
+    compiled: bool | None = None  #: the backend as generated C; None: when a C compiler is
+    #: found (solvers.codegen.find_compiler), else interpreted
     ipopt_max_iter: int = 100  #: IPOPT iterations of the CV planner's best response
     ipopt_tol: float = 1e-8  #: IPOPT tolerance of the CV planner
 
@@ -119,12 +121,15 @@ class PlannerOptions:
         check_number("planner.switch_margin", self.switch_margin, lo=0)
         check_number("planner.temperature", self.temperature, lo=0, lo_open=True)
         check_number("planner.ipopt_tol", self.ipopt_tol, lo=0, lo_open=True)
-        if self.backend not in ("structured", "dense"):
+        if self.backend not in ("fused", "structured", "dense"):
             raise SpecError(
-                "planner.backend", f"expected 'structured' or 'dense', got {self.backend!r}"
+                "planner.backend",
+                f"expected 'fused', 'structured' or 'dense', got {self.backend!r}",
             )
-        if not isinstance(self.compiled, bool):
-            raise SpecError("planner.compiled", f"expected true or false, got {self.compiled!r}")
+        if self.compiled is not None and not isinstance(self.compiled, bool):
+            raise SpecError(
+                "planner.compiled", f"expected true, false or null, got {self.compiled!r}"
+            )
 
     @classmethod
     def from_dict(cls, values: dict | None) -> PlannerOptions:
@@ -139,9 +144,19 @@ class PlannerOptions:
             gtol=self.gtol,
             ftol=0.0,
             backend=self.backend,
-            compiled=self.compiled,
+            compiled=_have_compiler() if self.compiled is None else self.compiled,
             threads=1,
         )
+
+
+def _have_compiler() -> bool:
+    from ..codegen import CompilerError, find_compiler
+
+    try:
+        find_compiler()
+    except CompilerError:
+        return False
+    return True
 
 
 def failed_plan(t0: float, dt: float, horizon: int, message: str, **info) -> Plan:
@@ -410,7 +425,9 @@ class GameOracle(_GamePlanner):
             self._u = None
             return failed_plan(obs.t, self.dt, g.K, f"oracle: LM {res.message}", **info)
         E = np.where(ok, res.energy, np.inf)
-        best = int(np.argmin(E))
+        # the first start whose energy is the lowest up to rounding: equal equilibria reached
+        # from several starts pick the same one whatever the backend's summation order
+        best = int(np.argmax(E <= E.min() + 1e-9 * (1.0 + abs(E.min()))))
         # hysteresis: keep the warm-started equilibrium unless another is clearly lower
         if warm and ok[0] and E[best] > E[0] - o.switch_margin * (1.0 + abs(E[0])):
             best = 0
