@@ -140,9 +140,21 @@ class Scenario:
     """
 
     name: str = "scenario"
+    #: the attributes sent to a worker process (None: all of them). Scenarios that hold
+    #: CasADi games or caches name only what rebuilds them (e.g. the recipe).
+    pickled: tuple[str, ...] | None = None
+
+    def __getstate__(self):
+        if self.pickled is None:
+            return self.__dict__
+        return {k: getattr(self, k) for k in self.pickled}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
 
     def recipe_dict(self) -> dict:
-        raise NotImplementedError
+        """The recipe as JSON facts for the manifest (default: ``self.recipe.to_dict()``)."""
+        return self.recipe.to_dict()
 
     @property
     def n_units(self) -> int:

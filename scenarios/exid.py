@@ -762,6 +762,7 @@ class ExidScenario(Scenario):
     Construct hooks: :meth:`agent_specs`, :meth:`game_spec`, :meth:`scenes`, :meth:`cut`."""
 
     name = "exid"
+    pickled = ("recipe", "raw")
 
     def __init__(self, recipe: ExidRecipe | None = None, raw: str | FilePath | None = None):
         if recipe is not None and not isinstance(recipe, ExidRecipe):
@@ -794,15 +795,7 @@ class ExidScenario(Scenario):
         )
         return cls(recipe, raw)
 
-    def __getstate__(self):
-        return {"recipe": self.recipe, "raw": self.raw}
-
-    def __setstate__(self, state):
-        self.recipe, self.raw = state["recipe"], state["raw"]
-
     # ---- Scenario interface ----------------------------------------------------------
-    def recipe_dict(self) -> dict:
-        return self.recipe.to_dict()
 
     @property
     def n_units(self) -> int:

@@ -449,21 +449,14 @@ class LeftTurnScenario(Scenario):
     :meth:`alternative`, :meth:`cut`, :meth:`augment`."""
 
     name = "left-turn"
+    pickled = ("recipe",)
 
     def __init__(self, recipe: LeftTurnRecipe | None = None):
         if recipe is not None and not isinstance(recipe, LeftTurnRecipe):
             raise SpecError("recipe", f"expected a LeftTurnRecipe, got {type(recipe).__name__}")
         self.recipe = recipe or LeftTurnRecipe()
 
-    def __getstate__(self):
-        return {"recipe": self.recipe}
-
-    def __setstate__(self, state):
-        self.recipe = state["recipe"]
-
     # ---- Scenario interface ----------------------------------------------------------
-    def recipe_dict(self) -> dict:
-        return self.recipe.to_dict()
 
     @property
     def n_units(self) -> int:

@@ -412,22 +412,14 @@ class RPIScenario(Scenario):
     """
 
     name = "rpi"
+    pickled = ("recipe",)  # the CasADi game is rebuilt in the worker
 
     def __init__(self, recipe: RPIRecipe | None = None):
         if recipe is not None and not isinstance(recipe, RPIRecipe):
             raise SpecError("recipe", f"expected an RPIRecipe, got {type(recipe).__name__}")
         self.recipe = recipe or RPIRecipe()
 
-    # pickling: send only the recipe; the CasADi game is rebuilt in the worker
-    def __getstate__(self):
-        return {"recipe": self.recipe}
-
-    def __setstate__(self, state):
-        self.recipe = state["recipe"]
-
     # ---- Scenario interface ----------------------------------------------------------
-    def recipe_dict(self) -> dict:
-        return self.recipe.to_dict()
 
     @property
     def n_units(self) -> int:

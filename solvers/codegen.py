@@ -35,11 +35,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import casadi as ca
+import numpy as np
 
 from epo_casadi.errors import EpoError, SpecError
 
 __all__ = [
     "AUTO_O1_LIMIT",
+    "BufferCall",
     "CompilerError",
     "cache_dir",
     "compile_functions",
@@ -149,3 +151,28 @@ def _build(funcs, name, cc, flags, folder: Path, lib: Path) -> None:
                 f"compiling {name}.c failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}"
             )
         os.replace(out, lib)  # atomic: readers see the old state or the whole library
+
+
+class BufferCall:
+    """A casadi.Function called through its buffer interface on preallocated numpy arrays."""
+
+    def __init__(self, f: ca.Function):
+        self.f = f
+        self.buf, self.ev = f.buffer()
+        self.outs = [np.empty(f.nnz_out(i)) for i in range(f.n_out())]
+        for i, o in enumerate(self.outs):
+            self.buf.set_res(i, memoryview(o))
+        self._ins = [None] * f.n_in()
+        self._sizes = [f.nnz_in(i) for i in range(f.n_in())]
+
+    def __call__(self, *args):
+        for i, a in enumerate(args):
+            a = np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
+            if a.size != self._sizes[i]:
+                raise ValueError(
+                    f"{self.f.name()}: input {i} needs {self._sizes[i]} numbers, got {a.size}"
+                )
+            self._ins[i] = a  # keep alive while CasADi reads it
+            self.buf.set_arg(i, memoryview(a))
+        self.ev()
+        return self.outs

@@ -56,8 +56,8 @@ class CompiledQuadratize:
     """
 
     def __init__(self, solver, groups, cost_fn, name: str, member=None, n_r: int = 0):
+        from .codegen import BufferCall as _Call
         from .codegen import compile_functions
-        from .ilq import _Call
 
         self.s = solver
         funcs = [g["fn"] for g in groups]
@@ -192,8 +192,8 @@ class CompiledRollout:
     """
 
     def __init__(self, solver):
+        from .codegen import BufferCall as _Call
         from .codegen import compile_functions
-        from .ilq import _Call
 
         K, nx, nu, nxs, na = solver.K, solver.nx, solver.nu, solver.nxs, solver.na
         s = ca.SX.sym("s", nx + na)

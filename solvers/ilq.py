@@ -127,6 +127,7 @@ import numpy as np
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
+from .codegen import BufferCall as _Call
 from .lm import MAX_STEPS, check_options
 from .result import SolveResult, Status
 
@@ -249,31 +250,6 @@ def from_stages(game: PotentialGame, X: np.ndarray | None = None, U: np.ndarray 
         u = np.empty(U.shape[:-2] + (game.n_u,))
         u[..., ui] = U
     return x, u
-
-
-class _Call:
-    """A casadi.Function called through its buffer interface on preallocated numpy arrays."""
-
-    def __init__(self, f: ca.Function):
-        self.f = f
-        self.buf, self.ev = f.buffer()
-        self.outs = [np.empty(f.nnz_out(i)) for i in range(f.n_out())]
-        for i, o in enumerate(self.outs):
-            self.buf.set_res(i, memoryview(o))
-        self._ins = [None] * f.n_in()
-        self._sizes = [f.nnz_in(i) for i in range(f.n_in())]
-
-    def __call__(self, *args):
-        for i, a in enumerate(args):
-            a = np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
-            if a.size != self._sizes[i]:
-                raise ValueError(
-                    f"{self.f.name()}: input {i} needs {self._sizes[i]} numbers, got {a.size}"
-                )
-            self._ins[i] = a  # keep alive while CasADi reads it
-            self.buf.set_arg(i, memoryview(a))
-        self.ev()
-        return self.outs
 
 
 # --------------------------------------------------------------------------------------

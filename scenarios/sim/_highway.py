@@ -17,9 +17,13 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from epo_casadi.errors import EpoError
+from epo_casadi.errors import EpoError, check_number
+from solvers.control.types import Observation
 
-__all__ = ["hw"]
+from ..maps import project_to_polyline
+from .common import circles_overlap
+
+__all__ = ["hw", "HighwayWorld"]
 
 
 @functools.cache
@@ -82,3 +86,61 @@ def hw() -> SimpleNamespace:
         Obstacle=Obstacle,
         Driver=Driver,
     )
+
+
+class HighwayWorld:
+    """What the highway-env worlds share: truth, observation, placement and the outcome
+    checks (collision, off-road, timeout; success is each world's own :meth:`_succeeded`).
+
+    Subclasses provide ``vehicles`` (ego first), ``ego_route``, ``road_map``, ``sensor``,
+    ``latch``, ``radii``, ``options`` (``collision``, ``off_road_margin``), ``t``, ``k``
+    and ``max_steps``.
+    """
+
+    vehicles: list
+
+    def truth(self) -> np.ndarray:
+        """``(N, 4)`` true ``(x, y, v, theta)`` of every agent, the ego first."""
+        return np.array(
+            [[v.position[0], v.position[1], v.speed, v.heading] for v in self.vehicles],
+            dtype=float,
+        )
+
+    def outcome(self) -> str:
+        return self.latch.value
+
+    def progress(self) -> float:
+        """Arc length (m) of the ego along its route."""
+        return float(project_to_polyline(self.vehicles[0].position[None], self.ego_route)[0][0])
+
+    def set_state(self, agent: int, state: np.ndarray) -> None:
+        """Place agent ``agent`` at ``(x, y, v, theta)`` (tests, hand-made situations)."""
+        check_number("agent", agent, lo=0, hi=self.n_agents - 1, integer=True)
+        x = np.asarray(state, dtype=float).reshape(4)
+        veh = self.vehicles[agent]
+        veh.position = x[:2].copy()
+        veh.speed, veh.heading = float(x[2]), float(x[3])
+        veh.on_state_update()
+
+    def _observe(self) -> Observation:
+        x = self.truth()
+        return Observation(t=self.t, ego=x[0].copy(), others=self.sensor.measure(x[1:, :2]))
+
+    def _check(self) -> None:
+        """Latch the first terminal outcome of this step."""
+        o, ego = self.options, self.vehicles[0]
+        if o.collision == "rectangles":
+            hit = bool(ego.crashed)
+        else:
+            hit = circles_overlap(self.truth()[:, :2], self.radii)
+        if hit:
+            self.latch.set("collision")
+        if self.road_map.distance_to_road(ego.position[None])[0] > o.off_road_margin:
+            self.latch.set("off_road")
+        if self._succeeded(np.asarray(ego.position, dtype=float)):
+            self.latch.set("success")
+        if self.k >= self.max_steps:
+            self.latch.set("timeout")
+
+    def _succeeded(self, position: np.ndarray) -> bool:  # pragma: no cover - abstract
+        raise NotImplementedError

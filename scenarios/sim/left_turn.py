@@ -80,7 +80,7 @@ from solvers.control.types import AgentTask, Observation
 from solvers.control.vehicle import VehicleModel
 
 from ..maps import ConflictZone, RoadMap, project_to_polyline
-from ._highway import hw
+from ._highway import HighwayWorld, hw
 from .common import (
     Character,
     Latch,
@@ -88,7 +88,6 @@ from .common import (
     build_options,
     check_range,
     check_sensor,
-    circles_overlap,
     gap_decision,
     seeds,
     time_to_cover,
@@ -294,7 +293,7 @@ def build_network(geo: Intersection):
     return net, names, stops
 
 
-class LeftTurnWorld:
+class LeftTurnWorld(HighwayWorld):
     """The unprotected left turn as a :class:`solvers.control.types.World` (see the module
     docstring). ``LeftTurnWorld(geometry="g2", noise_std=0.5)`` or with a
     :class:`LeftTurnOptions`."""
@@ -419,11 +418,9 @@ class LeftTurnWorld:
         return self._observe()
 
     # ------------------------------------------------------------------ queries
-    def truth(self) -> np.ndarray:
-        return np.array(
-            [[v.position[0], v.position[1], v.speed, v.heading] for v in (self.ego, self.driver)],
-            dtype=float,
-        )
+    @property
+    def vehicles(self) -> list:
+        return [self.ego, self.driver]
 
     def tasks(self) -> list[AgentTask]:
         rm = self.road_map
@@ -436,13 +433,6 @@ class LeftTurnWorld:
         )
         return [self.ego_task, other]
 
-    def outcome(self) -> str:
-        return self.latch.value
-
-    def progress(self) -> float:
-        """Arc length (m) of the ego along its route."""
-        return float(project_to_polyline(self.ego.position[None], self.ego_route)[0][0])
-
     def info(self) -> dict:
         """The oncoming driver's hidden state (for metrics and tests, never for planners)."""
         return dict(
@@ -453,36 +443,11 @@ class LeftTurnWorld:
             geometry=self.geometry.name,
         )
 
-    def set_state(self, agent: int, state: np.ndarray) -> None:
-        """Place agent ``agent`` at ``(x, y, v, theta)`` (tests, hand-made situations)."""
-        check_number("agent", agent, lo=0, hi=self.n_agents - 1, integer=True)
-        x = np.asarray(state, dtype=float).reshape(4)
-        veh = (self.ego, self.driver)[agent]
-        veh.position = x[:2].copy()
-        veh.speed, veh.heading = float(x[2]), float(x[3])
-        veh.on_state_update()
-
     # ------------------------------------------------------------------ internals
-    def _observe(self) -> Observation:
-        x = self.truth()
-        return Observation(t=self.t, ego=x[0].copy(), others=self.sensor.measure(x[1:, :2]))
-
-    def _check(self) -> None:
-        o = self.options
-        if o.collision == "rectangles":
-            hit = bool(self.ego.crashed)
-        else:
-            hit = circles_overlap(self.truth()[:, :2], self.radii)
-        if hit:
-            self.latch.set("collision")
-        pos = self.ego.position[None]
-        if self.road_map.distance_to_road(pos)[0] > o.off_road_margin:
-            self.latch.set("off_road")
-        s, d = project_to_polyline(pos, self.ego_route)
-        if s[0] >= self._s_goal - 1e-9 and d[0] <= self.geometry.lane_width:
-            self.latch.set("success")
-        if self.k >= self.max_steps:
-            self.latch.set("timeout")
+    def _succeeded(self, position: np.ndarray) -> bool:
+        """Past the goal along the route, within a lane width of it."""
+        s, d = project_to_polyline(position[None], self.ego_route)
+        return bool(s[0] >= self._s_goal - 1e-9 and d[0] <= self.geometry.lane_width)
 
     def _decide(self) -> None:
         """The oncoming driver's go / yield decision (module docstring)."""

@@ -41,8 +41,8 @@ from epo_casadi.errors import SpecError, check_number
 from solvers.control.types import AgentTask, Observation
 from solvers.control.vehicle import VehicleModel
 
-from ..maps import RoadMap, project_to_polyline, resample_polyline
-from ._highway import hw
+from ..maps import RoadMap, resample_polyline
+from ._highway import HighwayWorld, hw
 from .common import (
     Character,
     Latch,
@@ -50,7 +50,6 @@ from .common import (
     build_options,
     check_range,
     check_sensor,
-    circles_overlap,
     seeds,
 )
 
@@ -153,7 +152,7 @@ def build_network(o: MergeOptions):
     return net, names, (x_b, x_c, y_m)
 
 
-class MergeWorld:
+class MergeWorld(HighwayWorld):
     """The on-ramp merge as a :class:`solvers.control.types.World` (module docstring)."""
 
     name = "merge"
@@ -260,9 +259,9 @@ class MergeWorld:
         self._check()
         return self._observe()
 
-    def truth(self) -> np.ndarray:
-        vs = [self.ego, *self.others]
-        return np.array([[v.position[0], v.position[1], v.speed, v.heading] for v in vs])
+    @property
+    def vehicles(self) -> list:
+        return [self.ego, *self.others]
 
     def tasks(self) -> list[AgentTask]:
         out = [self.ego_task]
@@ -279,43 +278,12 @@ class MergeWorld:
             )
         return out
 
-    def outcome(self) -> str:
-        return self.latch.value
-
-    def progress(self) -> float:
-        """Arc length (m) of the ego along its route."""
-        return float(project_to_polyline(self.ego.position[None], self.ego_route)[0][0])
-
     def info(self) -> dict:
         """The drivers' hidden characters (metrics and tests, never planners)."""
         return dict(characters=list(self.characters))
 
-    def set_state(self, agent: int, state: np.ndarray) -> None:
-        """Place agent ``agent`` at ``(x, y, v, theta)`` (tests, hand-made situations)."""
-        check_number("agent", agent, lo=0, hi=self.n_agents - 1, integer=True)
-        x = np.asarray(state, dtype=float).reshape(4)
-        veh = [self.ego, *self.others][agent]
-        veh.position = x[:2].copy()
-        veh.speed, veh.heading = float(x[2]), float(x[3])
-        veh.on_state_update()
-
-    def _observe(self) -> Observation:
-        x = self.truth()
-        return Observation(t=self.t, ego=x[0].copy(), others=self.sensor.measure(x[1:, :2]))
-
-    def _check(self) -> None:
+    def _succeeded(self, p: np.ndarray) -> bool:
+        """On the main road past the goal."""
         o = self.options
-        if o.collision == "rectangles":
-            hit = bool(self.ego.crashed)
-        else:
-            hit = circles_overlap(self.truth()[:, :2], self.radii)
-        if hit:
-            self.latch.set("collision")
-        p = self.ego.position
-        if self.road_map.distance_to_road(p[None])[0] > o.off_road_margin:
-            self.latch.set("off_road")
         on_main = -(o.lanes - 0.5) * o.lane_width <= p[1] <= 0.5 * o.lane_width
-        if on_main and p[0] >= self._goal[0]:
-            self.latch.set("success")
-        if self.k >= self.max_steps:
-            self.latch.set("timeout")
+        return bool(on_main and p[0] >= self._goal[0])
