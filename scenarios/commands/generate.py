@@ -47,94 +47,85 @@ def generate():
     """Generate a dataset (sharded HDF5 files + manifest.json, resumable)."""
 
 
-@generate.command("rpi", short_help="Robot-pedestrian interaction dataset (paper App. E.1).")
-@click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
-)
-@click.option(
-    "--samples",
-    type=click.IntRange(min=1),
-    default=None,
-    help="About N samples (N/30 main games, at least 3; the manifest has the exact count). Default: the full set, ~58k samples.",
-)
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Worker processes (default: usable cores).",
-)
-@click.option(
-    "--seed",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    help="Seed of the whole dataset.",
-)
-@click.option(
-    "--engine",
-    type=click.Choice(["local", "dask"]),
-    default="local",
-    show_default=True,
-    help="local: process pool; dask: dask.distributed.",
-)
-@click.option(
-    "--scheduler",
-    default=None,
-    help="dask scheduler address (engine dask); default: a new LocalCluster of --workers processes.",
-)
-@click.option(
-    "--scheduler-timeout",
-    type=click.FloatRange(min=0, min_open=True, max=3600),
-    default=10.0,
-    show_default=True,
-    help="Seconds to wait for the --scheduler before giving up with an error.",
-)
-@click.option(
-    "--solver",
-    type=click.Choice(["ilq", "lm"]),
-    default=None,
-    help="Multimodal game solver (default: the recipe's, ilq).",
-)
-@click.option(
-    "--set",
-    "overrides",
-    multiple=True,
-    metavar="KEY=VALUE",
-    help="Override a recipe field (repeatable), e.g. --set n_samples=6.",
-)
-@click.option(
-    "--progress/--no-progress",
-    default=True,
-    show_default=True,
-    help="tqdm progress bar with samples/s.",
-)
-def rpi(
-    out, samples, workers, seed, engine, scheduler, scheduler_timeout, solver, overrides, progress
-):
-    """Robot-pedestrian interaction dataset (paper App. E.1)."""
+def _dataset_options(set_help: str):
+    """The options every dataset generator shares: output, workers, seed, engine, recipe
+    overrides and progress (one definition, so the generators cannot drift apart)."""
+    options = [
+        click.option(
+            "--out",
+            "out",
+            required=True,
+            type=click.Path(path_type=Path),
+            help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
+        ),
+        click.option(
+            "--workers",
+            type=click.IntRange(min=1),
+            default=None,
+            help="Worker processes (default: usable cores).",
+        ),
+        click.option(
+            "--seed",
+            type=click.IntRange(min=0),
+            default=0,
+            show_default=True,
+            help="Seed of the whole dataset.",
+        ),
+        click.option(
+            "--engine",
+            type=click.Choice(["local", "dask"]),
+            default="local",
+            show_default=True,
+            help="local: process pool; dask: dask.distributed.",
+        ),
+        click.option(
+            "--scheduler",
+            default=None,
+            help="dask scheduler address (engine dask); default: a new LocalCluster of --workers processes.",
+        ),
+        click.option(
+            "--scheduler-timeout",
+            type=click.FloatRange(min=0, min_open=True, max=3600),
+            default=10.0,
+            show_default=True,
+            help="Seconds to wait for the --scheduler before giving up with an error.",
+        ),
+        click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=set_help),
+        click.option(
+            "--progress/--no-progress",
+            default=True,
+            show_default=True,
+            help="tqdm progress bar with samples/s.",
+        ),
+    ]
+
+    def decorate(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return decorate
+
+
+def _recipe(make, overrides: dict):
+    """``make(**overrides)``; a value of the wrong type inside the recipe names ``--set``."""
+    try:
+        return make(**overrides)
+    except TypeError as e:
+        raise SpecError("--set", str(e)) from None
+
+
+def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_timeout, progress):
+    """Generate ``scenario`` into ``out`` (resumable; SIGTERM stops like Ctrl-C) and report."""
     from scenarios.dataset import check_output_dir, sigterm_as_interrupt
     from scenarios.dataset import generate as run
-    from scenarios.rpi import RPIRecipe, RPIScenario
 
-    kw = _parse_set(overrides)
-    if solver is not None:
-        kw["solver"] = solver
-    try:
-        recipe = (
-            RPIRecipe.for_samples(samples, **kw) if samples is not None else RPIRecipe.from_dict(kw)
-        )
-    except TypeError as e:  # a value of the wrong type inside the recipe
-        raise SpecError("--set", str(e)) from None
     if scheduler is not None and engine != "dask":
         raise click.BadParameter("needs --engine dask", param_hint="'--scheduler'")
     check_output_dir(out)
     with sigterm_as_interrupt():
         rep = run(
-            RPIScenario(recipe),
+            scenario,
             out,
             seed=seed,
             workers=workers or _cores(),
@@ -151,83 +142,50 @@ def rpi(
     )
 
 
-@generate.command("left-turn", short_help="Left-turn demonstrations (paper App. E, CARLA).")
+@generate.command("rpi", short_help="Robot-pedestrian interaction dataset (paper App. E.1).")
 @click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
+    "--samples",
+    type=click.IntRange(min=1),
+    default=None,
+    help="About N samples (N/30 main games, at least 3; the manifest has the exact count). Default: the full set, ~58k samples.",
 )
+@click.option(
+    "--solver",
+    type=click.Choice(["ilq", "lm"]),
+    default=None,
+    help="Multimodal game solver (default: the recipe's, ilq).",
+)
+@_dataset_options("Override a recipe field (repeatable), e.g. --set n_samples=6.")
+def rpi(samples, solver, overrides, **run):
+    """Robot-pedestrian interaction dataset (paper App. E.1)."""
+    from scenarios.rpi import RPIRecipe, RPIScenario
+
+    kw = _parse_set(overrides)
+    if solver is not None:
+        kw["solver"] = solver
+    if samples is not None:
+        recipe = _recipe(lambda **k: RPIRecipe.for_samples(samples, **k), kw)
+    else:
+        recipe = _recipe(lambda **k: RPIRecipe.from_dict(k), kw)
+    _run_dataset(RPIScenario(recipe), **run)
+
+
+@generate.command("left-turn", short_help="Left-turn demonstrations (paper App. E, CARLA).")
 @click.option(
     "--episodes-per-geometry",
     type=click.IntRange(min=1),
     default=None,
     help="Episodes per intersection geometry (default: the recipe's, 5 as in the paper).",
 )
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Worker processes (default: usable cores).",
-)
-@click.option(
-    "--seed",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    help="Seed of the whole dataset.",
-)
-@click.option(
-    "--engine",
-    type=click.Choice(["local", "dask"]),
-    default="local",
-    show_default=True,
-    help="local: process pool; dask: dask.distributed.",
-)
-@click.option("--scheduler", default=None, help="dask scheduler address (engine dask).")
-@click.option(
-    "--set",
-    "overrides",
-    multiple=True,
-    metavar="KEY=VALUE",
-    help="Override a recipe field (repeatable), e.g. --set augment_copies=2.",
-)
-@click.option(
-    "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
-)
-def left_turn(out, episodes_per_geometry, workers, seed, engine, scheduler, overrides, progress):
+@_dataset_options("Override a recipe field (repeatable), e.g. --set augment_copies=2.")
+def left_turn(episodes_per_geometry, overrides, **run):
     """Left-turn demonstrations on four intersections, split by intersection (docs/left_turn.md)."""
-    from scenarios.dataset import check_output_dir, sigterm_as_interrupt
-    from scenarios.dataset import generate as run
     from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario
 
     kw = _parse_set(overrides)
     if episodes_per_geometry is not None:
         kw["episodes_per_geometry"] = episodes_per_geometry
-    try:
-        recipe = LeftTurnRecipe.from_dict(kw)
-    except TypeError as e:  # a value of the wrong type inside the recipe
-        raise SpecError("--set", str(e)) from None
-    if scheduler is not None and engine != "dask":
-        raise click.BadParameter("needs --engine dask", param_hint="'--scheduler'")
-    check_output_dir(out)
-    with sigterm_as_interrupt():
-        rep = run(
-            LeftTurnScenario(recipe),
-            out,
-            seed=seed,
-            workers=workers or _cores(),
-            engine=engine,
-            address=scheduler,
-            progress=progress,
-        )
-    c = rep.counts
-    click.echo(
-        f"{out}: train {c['train']}, val {c['val']}, test {c['test']} samples; "
-        f"{len(rep.shards_written)} shard(s) written, {len(rep.shards_kept)} kept; "
-        f"{rep.samples_written} samples in {rep.seconds:.1f} s ({rep.samples_per_second:.2f} samples/s)"
-    )
+    _run_dataset(LeftTurnScenario(_recipe(lambda **k: LeftTurnRecipe.from_dict(k), kw)), **run)
 
 
 @generate.command("exid", short_help="Scenes of the exiD release layout (paper App. E, exiD).")
@@ -238,49 +196,15 @@ def left_turn(out, episodes_per_geometry, workers, seed, engine, scheduler, over
     help="Directory of the exiD release (data/NN_*.csv, maps/lanelet2/*.osm), or one made by "
     "'epo generate highway-raw'.",
 )
-@click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
+@_dataset_options(
+    "Override a recipe field (repeatable), e.g. --set test_locations=[2] (docs/exid.md)."
 )
-@click.option(
-    "--workers", type=click.IntRange(min=1), default=None, help="Worker processes (default: cores)."
-)
-@click.option(
-    "--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed (val split)."
-)
-@click.option(
-    "--set",
-    "overrides",
-    multiple=True,
-    metavar="KEY=VALUE",
-    help="Override a recipe field (repeatable), e.g. --set test_locations=[2] (docs/exid.md).",
-)
-@click.option(
-    "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
-)
-def exid(raw, out, workers, seed, overrides, progress):
+def exid(raw, overrides, **run):
     """N = 4 scenes with a lane change, dt 0.2 s, 1.8 s history, 4 s future; test on its own map."""
-    from scenarios.dataset import check_output_dir, sigterm_as_interrupt
-    from scenarios.dataset import generate as run
     from scenarios.exid import ExidScenario
 
-    kw = _parse_set(overrides)
-    try:
-        scenario = ExidScenario.from_raw(raw, **kw)
-    except TypeError as e:  # a value of the wrong type inside the recipe
-        raise SpecError("--set", str(e)) from None
-    check_output_dir(out)
-    with sigterm_as_interrupt():
-        rep = run(scenario, out, seed=seed, workers=workers or _cores(), progress=progress)
-    c = rep.counts
-    click.echo(
-        f"{out}: train {c['train']}, val {c['val']}, test {c['test']} samples; "
-        f"{len(rep.shards_written)} shard(s) written, {len(rep.shards_kept)} kept; "
-        f"{rep.samples_written} samples in {rep.seconds:.1f} s ({rep.samples_per_second:.2f} samples/s)"
-    )
+    scenario = _recipe(lambda **k: ExidScenario.from_raw(raw, **k), _parse_set(overrides))
+    _run_dataset(scenario, **run)
 
 
 @generate.command("highway-raw", short_help="highway-env traffic written in the exiD layout.")
