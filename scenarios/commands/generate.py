@@ -47,64 +47,74 @@ def generate():
     """Generate a dataset (sharded HDF5 files + manifest.json, resumable)."""
 
 
-def _dataset_options(set_help: str):
-    """The options every dataset generator shares: output, workers, seed, engine, recipe
-    overrides and progress (one definition, so the generators cannot drift apart)."""
-    options = [
-        click.option(
-            "--out",
-            "out",
-            required=True,
-            type=click.Path(path_type=Path),
-            help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
-        ),
-        click.option(
-            "--workers",
-            type=click.IntRange(min=1),
-            default=None,
-            help="Worker processes (default: usable cores).",
-        ),
-        click.option(
-            "--seed",
-            type=click.IntRange(min=0),
-            default=0,
-            show_default=True,
-            help="Seed of the whole dataset.",
-        ),
-        click.option(
-            "--engine",
-            type=click.Choice(["local", "dask"]),
-            default="local",
-            show_default=True,
-            help="local: process pool; dask: dask.distributed.",
-        ),
-        click.option(
-            "--scheduler",
-            default=None,
-            help="dask scheduler address (engine dask); default: a new LocalCluster of --workers processes.",
-        ),
-        click.option(
-            "--scheduler-timeout",
-            type=click.FloatRange(min=0, min_open=True, max=3600),
-            default=10.0,
-            show_default=True,
-            help="Seconds to wait for the --scheduler before giving up with an error.",
-        ),
-        click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=set_help),
-        click.option(
-            "--progress/--no-progress",
-            default=True,
-            show_default=True,
-            help="tqdm progress bar with samples/s.",
-        ),
-    ]
-
+def _apply(options):
     def decorate(f):
         for opt in reversed(options):
             f = opt(f)
         return f
 
     return decorate
+
+
+def engine_options(seed_help: str = "Seed of the whole dataset."):
+    """Workers, seed, engine, scheduler and progress: the options of every command that runs
+    work units on the local-process or Dask engine (generators, ``epo simulate``)."""
+    return _apply(
+        [
+            click.option(
+                "--workers",
+                type=click.IntRange(min=1),
+                default=None,
+                help="Worker processes (default: usable cores).",
+            ),
+            click.option(
+                "--seed", type=click.IntRange(min=0), default=0, show_default=True, help=seed_help
+            ),
+            click.option(
+                "--engine",
+                type=click.Choice(["local", "dask"]),
+                default="local",
+                show_default=True,
+                help="local: process pool; dask: dask.distributed.",
+            ),
+            click.option(
+                "--scheduler",
+                default=None,
+                help="dask scheduler address (engine dask); default: a new LocalCluster of --workers processes.",
+            ),
+            click.option(
+                "--progress/--no-progress",
+                default=True,
+                show_default=True,
+                help="tqdm progress bar.",
+            ),
+        ]
+    )
+
+
+def _dataset_options(set_help: str):
+    """The options every dataset generator shares (one definition, so the generators
+    cannot drift apart): output, the engine options, recipe overrides."""
+    return _apply(
+        [
+            click.option(
+                "--out",
+                "out",
+                required=True,
+                type=click.Path(path_type=Path),
+                help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
+            ),
+            engine_options(),
+            click.option(
+                "--scheduler-timeout",
+                type=click.FloatRange(min=0, min_open=True, max=3600),
+                default=10.0,
+                show_default=True,
+                help="Seconds to wait for the --scheduler before giving up with an error.",
+            ),
+            click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=set_help),
+        ]
+    )
 
 
 def _recipe(make, overrides: dict):

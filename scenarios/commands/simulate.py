@@ -16,7 +16,7 @@ import click
 
 from epo_casadi.errors import SpecError
 
-from .generate import _cores, _parse_set
+from .generate import _cores, _parse_set, engine_options
 
 PLANNERS = ("model", "oracle", "cv", "sc")
 TRACKERS = ("pid", "mpc")
@@ -41,27 +41,7 @@ TRACKERS = ("pid", "mpc")
     help="pid: speed and heading PIDs; mpc: OSQP linear time-varying MPC.",
 )
 @click.option("--episodes", type=click.IntRange(min=1), default=200, show_default=True)
-@click.option(
-    "--seed",
-    type=click.IntRange(min=0),
-    default=0,
-    show_default=True,
-    help="Episode i uses seed + i.",
-)
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Worker processes (default: usable cores).",
-)
-@click.option(
-    "--engine",
-    type=click.Choice(["local", "dask"]),
-    default="local",
-    show_default=True,
-    help="local: process pool; dask: dask.distributed.",
-)
-@click.option("--scheduler", default=None, help="dask scheduler address (engine dask).")
+@engine_options(seed_help="Episode i uses seed + i.")
 @click.option(
     "--out",
     "out",
@@ -96,7 +76,6 @@ TRACKERS = ("pid", "mpc")
     show_default=True,
     help="Episode plot, GIF of the first episode, latency histogram.",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
 def simulate(
     scenario,
     planner,
