@@ -380,7 +380,14 @@ def _check(choice: SolverChoice, game: PotentialGame, p: np.ndarray, res):
         from .feedback_nash import feedback_nash_check
 
         c = feedback_nash_check(
-            game, p, res.states, res.controls, res.info["gains"], res.info["feedforward"]
+            game,
+            p,
+            res.states,
+            res.controls,
+            res.info["gains"],
+            res.info["feedforward"],
+            gains_prev=res.info.get("gains_prev"),
+            prev_variables=res.info.get("prev_variables"),
         )
         return "feedback", c.ok, float(np.max(c.gain)), time.perf_counter() - t0
     from .nash import nash_certificate

@@ -58,7 +58,7 @@ or return NaN for it).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -67,8 +67,14 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
-from .gn import DenseGN, Linearization
-from .structured import StageLayout, StructuredGN, _var_columns, stage_layout
+from .gn import DenseGN
+from .structured import (
+    StageLayout,
+    StageLinearization,
+    StructuredGN,
+    _var_columns,
+    stage_layout,
+)
 
 __all__ = ["MAX_STAGE_SIZE", "MAX_STAGE_SIZE_COMPILED", "FusedGN", "FusedLinearization"]
 
@@ -85,26 +91,12 @@ MAX_STAGE_SIZE_COMPILED = 48
 
 
 @dataclass
-class FusedLinearization:
-    """What :class:`FusedGN` knows at the current iterate of every problem.
-
-    ``r`` ``(B, n_r)``, ``energy`` ``(B,)``, ``gradient`` ``(B, n_u) = J'r`` as in
-    :class:`solvers.lm.Linearization`; ``H`` and ``FG`` the structural nonzeros of the
-    stage blocks ``R_k'R_k`` and of the augmented dynamics, ``(B, nnz)`` each, as inputs of
-    ``fused_solve``. ``J`` and ``JtJ`` are dense and computed on first access only.
+class FusedLinearization(StageLinearization):
+    """What :class:`FusedGN` knows at the current iterate of every problem: the fields of
+    :class:`solvers.structured.StageLinearization`, where ``H`` and ``FG`` hold
+    the structural nonzeros of the stage blocks ``R_k'R_k`` and of the augmented dynamics,
+    ``(B, nnz)`` each, as inputs of ``fused_solve``; ``backend`` is the :class:`FusedGN`.
     """
-
-    r: np.ndarray
-    energy: np.ndarray
-    gradient: np.ndarray
-    H: np.ndarray
-    FG: np.ndarray
-    U: np.ndarray
-    P: np.ndarray
-    backend: FusedGN = field(repr=False)
-    _diag: np.ndarray | None = field(default=None, repr=False)
-    _factor: tuple | None = field(default=None, repr=False)
-    _dense: Linearization | None = field(default=None, repr=False)
 
     def diag_jtj(self) -> np.ndarray:
         """``diag(J'J)`` as ``(B, K, m)`` joint stage controls (exact, cached)."""
@@ -113,34 +105,6 @@ class FusedLinearization:
             d = self.backend._diag(self.H, self.FG)[0]
             self._diag = d.reshape(-1, L.K, L.m)
         return self._diag
-
-    def dense(self) -> Linearization:
-        """The dense :class:`solvers.lm.Linearization` at the same iterate (slow, cached)."""
-        if self._dense is None:
-            self._dense = self.backend.dense_backend.linearize(self.U, self.P)
-        return self._dense
-
-    @property
-    def J(self) -> np.ndarray:
-        return self.dense().J
-
-    @property
-    def JtJ(self) -> np.ndarray:
-        return self.dense().JtJ
-
-    def select(self, other: FusedLinearization, take_other: np.ndarray) -> FusedLinearization:
-        """A copy with the problems where ``take_other`` is true taken from ``other``."""
-        m = take_other[:, None]
-        return FusedLinearization(
-            np.where(m, other.r, self.r),
-            np.where(take_other, other.energy, self.energy),
-            np.where(m, other.gradient, self.gradient),
-            np.where(m, other.H, self.H),
-            np.where(m, other.FG, self.FG),
-            np.where(m, other.U, self.U),
-            np.where(m, other.P, self.P),
-            backend=self.backend,
-        )
 
 
 class FusedGN:

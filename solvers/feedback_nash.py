@@ -3,7 +3,12 @@
 The iLQ solver (:mod:`solvers.ilq`) returns a feedback policy, one per stage
 ``k = 0..K-1``, for the joint stage vectors of :func:`solvers.ilq.to_stages`::
 
-    U_k(X) = U*_k - P_k (X - X*_k) - a_k          (P = info["gains"], a = info["feedforward"])
+    U_k(X) = U*_k - P_k (X_k - X*_k) - Q_k (Y_k - Y*_k) - a_k
+
+(``P = info["gains"]``, ``a = info["feedforward"]``, ``Q = info["gains_prev"]``). With
+costs that couple consecutive stages (``jerk``, ``turn_acceleration``) the policy also
+reacts to the carried variables ``Y_k = (U_{k-1}, X_{k-1})[info["prev_variables"]]``
+(``Y_0 - Y*_0 = 0``); without ``Q`` the check tests a different policy than iLQ's.
 
 A feedback Nash equilibrium is a set of policies from which no player lowers its own cost
 ``C_i`` (:mod:`epo_casadi.game`) by changing *its own* policy while the others keep
@@ -12,9 +17,9 @@ open-loop certificate (:mod:`solvers.nash`) is the wrong test for it: it holds t
 *controls* fixed, not their policies.
 
 :func:`feedback_nash_check` perturbs each player's policy, its rows of the gains ``P_k``
-and of the feed-forward ``a_k`` together, along ``n_random`` random directions (unit RMS
-entries, seeded) and ``n_coordinate`` coordinate directions (one feed-forward entry of
-one stage), each with both signs and every step in ``scales``; rolls the closed loop out
+(and of ``Q_k`` when given) and of the feed-forward ``a_k`` together, along ``n_random``
+random directions (unit RMS entries, seeded) and ``n_coordinate`` coordinate directions
+(one feed-forward entry of one stage), each with both signs and every step in ``scales``; rolls the closed loop out
 from the game's initial states with the nonlinear dynamics; and evaluates every player's
 cost. The largest decrease of the deviating player's own cost is its *gain*; the check
 passes when every player's gain is ``<= tol (1 + |C_i|)``.
@@ -96,13 +101,16 @@ class FeedbackNashCheck:
         )
 
 
-def _closed_loop(game: PotentialGame) -> ca.Function:
-    """``(p, Xr (nx, K+1), Ur (nu, K), P (nu*nx, K), a (nu, K)) -> C (N)``: the closed loop
-    from the game's initial states, rolled out with the nonlinear dynamics, and its costs."""
+def _closed_loop(game: PotentialGame, prev: tuple[int, ...] = ()) -> ca.Function:
+    """``(p, Xr (nx, K+1), Ur (nu, K), P (nu*nx, K), a (nu, K), Q (nu*na, K)) -> C (N)``: the
+    closed loop from the game's initial states, rolled out with the nonlinear dynamics, and
+    its costs. ``prev``: positions in ``(U_{k-1}, X_{k-1})`` of the carried variables ``Y_k``
+    (``na = len(prev)``; their deviation is zero at ``k = 0``)."""
 
     def build():
         K = game.K
         nx, nu = int(sum(game.nx)), int(sum(game.nu))
+        na = len(prev)
         xo = np.concatenate([[0], np.cumsum(game.nx)]).astype(int)
         uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
         p = ca.SX.sym("p", game.n_p)
@@ -110,6 +118,7 @@ def _closed_loop(game: PotentialGame) -> ca.Function:
         Ur = ca.SX.sym("Ur", nu, K)
         Pg = ca.SX.sym("P", nu * nx, K)
         a = ca.SX.sym("a", nu, K)
+        Qg = ca.SX.sym("Q", nu * na, K)
         x = ca.vertcat(
             *[
                 p[game.params[f"x0.{n}"].start : game.params[f"x0.{n}"].start + game.nx[i]]
@@ -117,9 +126,14 @@ def _closed_loop(game: PotentialGame) -> ca.Function:
             ]
         )
         xs, us = [x], []
+        dy = ca.SX.zeros(na)  # Y_k - Y*_k, none at k = 0
         for k in range(K):
             Pk = ca.reshape(Pg[:, k], nx, nu).T  # row-major (nu, nx)
             u = Ur[:, k] - ca.mtimes(Pk, x - Xr[:, k]) - a[:, k]
+            if na:
+                Qk = ca.reshape(Qg[:, k], na, nu).T  # row-major (nu, na)
+                u = u - ca.mtimes(Qk, dy)
+                dy = ca.vertcat(u - Ur[:, k], x - Xr[:, k])[list(prev)]
             x = game.stage_step(x, u)  # own dynamics, or a coupling's joint model
             xs.append(x)
             us.append(u)
@@ -127,9 +141,9 @@ def _closed_loop(game: PotentialGame) -> ca.Function:
         xf = ca.vertcat(*[ca.vertcat(*[xk[xo[i] : xo[i + 1]] for xk in xs]) for i in range(game.N)])
         uf = ca.vertcat(*[ca.vertcat(*[uk[uo[i] : uo[i + 1]] for uk in us]) for i in range(game.N)])
         C = game.function("traj_agent_costs")(xf, uf, p)
-        return ca.Function("closed_loop_costs", [p, Xr, Ur, Pg, a], [C])
+        return ca.Function("closed_loop_costs", [p, Xr, Ur, Pg, a, Qg], [C])
 
-    return game.cached(("feedback_nash_closed_loop",), build)
+    return game.cached(("feedback_nash_closed_loop", tuple(prev)), build)
 
 
 def feedback_nash_check(
@@ -140,13 +154,20 @@ def feedback_nash_check(
     gains: np.ndarray,
     feedforward: np.ndarray,
     options: FeedbackNashOptions | dict | None = None,
+    gains_prev: np.ndarray | None = None,
+    prev_variables: np.ndarray | None = None,
 ) -> FeedbackNashCheck:
-    """Check the policy ``U_k(X) = U*_k - P_k (X - X*_k) - a_k`` (module docstring).
+    """Check the policy ``U_k(X) = U*_k - P_k (X - X*_k) - Q_k (Y_k - Y*_k) - a_k`` (module
+    docstring).
 
     ``states`` ``(n_x,)`` and ``controls`` ``(n_u,)``: the trajectory ``(X*, U*)`` in the
     flat game layout; ``gains`` ``(K, nu, nx)`` and ``feedforward`` ``(K, nu)`` in the
     joint stage layout of :func:`solvers.ilq.to_stages` (an iLQ result's
-    ``info["gains"]`` and ``info["feedforward"]``). One problem at a time.
+    ``info["gains"]`` and ``info["feedforward"]``). ``gains_prev`` ``(K, nu, na)`` and
+    ``prev_variables`` ``(na,)``: the gains ``Q`` on the carried variables
+    ``Y_k = (U_{k-1}, X_{k-1})[prev_variables]`` (``Y_0 - Y*_0 = 0``; an iLQ result's
+    ``info["gains_prev"]`` and ``info["prev_variables"]``); both or neither (``None``: no
+    ``Q`` term). One problem at a time.
     """
     from .ilq import to_stages
 
@@ -161,15 +182,27 @@ def feedback_nash_check(
             "gains/feedforward",
             f"expected shapes ({K}, {nu}, {nx}) and ({K}, {nu}), got {P.shape} and {a.shape}",
         )
+    if (gains_prev is None) != (prev_variables is None):
+        raise SpecError("gains_prev/prev_variables", "expected both or neither")
+    prev = np.zeros(0, int) if prev_variables is None else np.asarray(prev_variables)
+    if prev.ndim != 1 or (prev.size and not np.issubdtype(prev.dtype, np.integer)):
+        raise SpecError("prev_variables", f"expected a 1-d array of integers, got {prev!r}")
+    if prev.size and (prev.min() < 0 or prev.max() >= nu + nx):
+        raise SpecError("prev_variables", f"expected positions in 0..{nu + nx - 1}")
+    na = int(prev.size)
+    Q = np.zeros((K, nu, 0)) if gains_prev is None else np.asarray(gains_prev, float)
+    if Q.shape != (K, nu, na):
+        raise SpecError("gains_prev", f"expected shape ({K}, {nu}, {na}), got {Q.shape}")
     X, U = to_stages(game, np.asarray(states, float), np.asarray(controls, float))
-    f = _closed_loop(game)
+    f = _closed_loop(game, tuple(int(v) for v in prev))
     p = np.asarray(p, float).reshape(-1)
     Xr, Ur = X.T, U.T
 
-    def costs(Pm, am):
-        return np.asarray(f(p, Xr, Ur, Pm.reshape(K, nu * nx).T, am.T), float).ravel()
+    def costs(Pm, am, Qm):
+        Pf, Qf = Pm.reshape(K, nu * nx).T, Qm.reshape(K, nu * na).T
+        return np.asarray(f(p, Xr, Ur, Pf, am.T, Qf), float).ravel()
 
-    base = costs(P, a)
+    base = costs(P, a, Q)
     uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
     rng = np.random.default_rng(opts.seed)
     gain = np.full(N, -np.inf)
@@ -178,20 +211,20 @@ def feedback_nash_check(
         rows = slice(int(uo[i]), int(uo[i + 1]))
         dirs = []
         for _ in range(opts.n_random):
-            dP = np.zeros_like(P)
-            da = np.zeros_like(a)
+            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
             dP[:, rows] = rng.standard_normal(P[:, rows].shape)
             da[:, rows] = rng.standard_normal(a[:, rows].shape)
-            dirs.append((dP, da))
+            if na:  # drawn after P and a: without Q the directions are as before
+                dQ[:, rows] = rng.standard_normal(Q[:, rows].shape)
+            dirs.append((dP, da, dQ))
         for _ in range(opts.n_coordinate):
-            dP = np.zeros_like(P)
-            da = np.zeros_like(a)
+            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
             da[rng.integers(K), int(uo[i]) + rng.integers(game.nu[i])] = 1.0
-            dirs.append((dP, da))
-        for dP, da in dirs:
+            dirs.append((dP, da, dQ))
+        for dP, da, dQ in dirs:
             for s in opts.scales:
                 for sign in (1.0, -1.0):
-                    c = costs(P + sign * s * dP, a + sign * s * da)
+                    c = costs(P + sign * s * dP, a + sign * s * da, Q + sign * s * dQ)
                     trials += 1
                     drop = base[i] - c[i] if np.isfinite(c[i]) else -np.inf
                     gain[i] = max(gain[i], drop)

@@ -168,14 +168,16 @@ def stage_layout(game: PotentialGame, jac_sparsity: ca.Sparsity | None = None) -
 # Linearization
 # --------------------------------------------------------------------------------------
 @dataclass
-class StructuredLinearization:
-    """What :class:`StructuredGN` knows at the current iterate of every problem.
+class StageLinearization:
+    """What a stage-wise Gauss-Newton backend knows at the current iterate of every problem
+    (the fields and accessors :class:`StructuredLinearization` and
+    :class:`solvers.fast_gn.FusedLinearization` share; each adds its ``diag_jtj``).
 
     ``r`` ``(B, n_r)``, ``energy`` ``(B,)``, ``gradient`` ``(B, n_u) = J'r`` as in
-    :class:`solvers.lm.Linearization`; ``H`` ``(B, K+1, d, d)`` stage Gauss-Newton blocks
-    ``R_k'R_k`` over ``[z_k; u_k]``; ``FG`` ``(B, K, nz, d)`` the augmented dynamics
-    ``[F_k, G_k]``. ``J`` and ``JtJ`` are dense and computed on first access only (for code
-    that needs them, e.g. :func:`solvers.lm._merge`); the solve never uses them.
+    :class:`solvers.lm.Linearization`; ``H`` and ``FG`` the stage blocks and augmented
+    dynamics in the backend's own layout; ``U``, ``P`` the iterate. ``J`` and ``JtJ`` are
+    dense and computed on first access only (for code that needs them, e.g.
+    :func:`solvers.lm._merge`); the solve never uses them.
     """
 
     r: np.ndarray
@@ -185,16 +187,10 @@ class StructuredLinearization:
     FG: np.ndarray
     U: np.ndarray
     P: np.ndarray
-    backend: StructuredGN = field(repr=False)
+    backend: object = field(repr=False)
     _diag: np.ndarray | None = field(default=None, repr=False)
     _factor: tuple | None = field(default=None, repr=False)
     _dense: Linearization | None = field(default=None, repr=False)
-
-    def diag_jtj(self) -> np.ndarray:
-        """``diag(J'J)`` as ``(B, K, m)`` joint stage controls (exact, cached)."""
-        if self._diag is None:
-            self._diag = self.backend._diag_jtj(self)
-        return self._diag
 
     def dense(self) -> Linearization:
         """The dense :class:`solvers.lm.Linearization` at the same iterate (slow, cached)."""
@@ -210,11 +206,9 @@ class StructuredLinearization:
     def JtJ(self) -> np.ndarray:
         return self.dense().JtJ
 
-    def select(
-        self, other: StructuredLinearization, take_other: np.ndarray
-    ) -> StructuredLinearization:
+    def select(self, other: StageLinearization, take_other: np.ndarray) -> StageLinearization:
         """A copy with the problems where ``take_other`` is true taken from ``other``."""
-        out = StructuredLinearization(
+        return type(self)(
             *(
                 np.where(_bcast(take_other, a), b, a)
                 for a, b in (
@@ -229,7 +223,19 @@ class StructuredLinearization:
             ),
             backend=self.backend,
         )
-        return out
+
+
+@dataclass
+class StructuredLinearization(StageLinearization):
+    """What :class:`StructuredGN` knows (:class:`StageLinearization`): ``H``
+    ``(B, K+1, d, d)`` stage Gauss-Newton blocks ``R_k'R_k`` over ``[z_k; u_k]``; ``FG``
+    ``(B, K, nz, d)`` the augmented dynamics ``[F_k, G_k]``."""
+
+    def diag_jtj(self) -> np.ndarray:
+        """``diag(J'J)`` as ``(B, K, m)`` joint stage controls (exact, cached)."""
+        if self._diag is None:
+            self._diag = self.backend._diag_jtj(self)
+        return self._diag
 
 
 def _bcast(mask, a):
