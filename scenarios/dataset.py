@@ -556,11 +556,12 @@ def _same_dataset(old: dict, new: dict) -> str | None:
         a, b = json.loads(json.dumps(old.get(key))), json.loads(json.dumps(new.get(key)))
         if a != b:
             if key == "recipe" and isinstance(a, dict) and isinstance(b, dict):
-                # name the recipe field that differs; a field that selects the kind of
-                # recipe (rpi's ground_truth) first, as it explains the others
-                for f in sorted(set(a) | set(b), key=lambda f: (f != "ground_truth", f)):
-                    if a.get(f) != b.get(f):
-                        return f"recipe field {f!r} ({a.get(f)!r} there, {b.get(f)!r} asked)"
+                # name every recipe field that differs (in the recipe's own order), so a
+                # field that selects a kind of recipe is named beside what follows from it
+                diff = [f for f in {**a, **b} if a.get(f) != b.get(f)]
+                return "; ".join(
+                    f"recipe field {f!r} ({a.get(f)!r} there, {b.get(f)!r} asked)" for f in diff
+                )
             return key
     return None
 

@@ -449,42 +449,34 @@ def run_comparison(
     return comp
 
 
+def _failed_row(base: dict, message: str) -> Row:
+    """The row of a solver that could not be built or raised: status failed, no numbers."""
+    return Row(
+        **base,
+        status=Status.FAILED.value,
+        energy=math.nan,
+        gap=math.nan,
+        iterations=0,
+        grad_norm=math.nan,
+        solve_s=0.0,
+        check="none",
+        check_ok=None,
+        player_gain=math.nan,
+        check_s=0.0,
+        message=message,
+    )
+
+
 def _one_row(gname, game, p, choice, init, setup_s, setup_err, check) -> Row:
     base = dict(game=gname, solver=choice.label, init=init.label, setup_s=setup_s)
     if setup_err is not None:
-        return Row(
-            **base,
-            status=Status.FAILED.value,
-            energy=math.nan,
-            gap=math.nan,
-            iterations=0,
-            grad_norm=math.nan,
-            solve_s=0.0,
-            check="none",
-            check_ok=None,
-            player_gain=math.nan,
-            check_s=0.0,
-            message=setup_err,
-        )
+        return _failed_row(base, setup_err)
     u0 = init.controls_for(game)
     try:
         res = solve_with(choice, game, p, u0)
     except Exception as e:  # noqa: BLE001 - a failed solve is a row, not a crash
         msg = f"{type(e).__name__}: {e}".splitlines()[0]
-        return Row(
-            **base,
-            status=Status.FAILED.value,
-            energy=math.nan,
-            gap=math.nan,
-            iterations=0,
-            grad_norm=math.nan,
-            solve_s=0.0,
-            check="none",
-            check_ok=None,
-            player_gain=math.nan,
-            check_s=0.0,
-            message=msg,
-        )
+        return _failed_row(base, msg)
     st = res.status
     name, ok, gain, cs = "none", None, math.nan, 0.0
     if check and st in (Status.CONVERGED, Status.MAX_ITER, Status.STALLED):

@@ -73,6 +73,7 @@ from .structured import (
     StageLinearization,
     StructuredGN,
     _var_columns,
+    check_stage_game,
     stage_layout,
 )
 
@@ -124,10 +125,7 @@ class FusedGN:
         compiled: bool = False,
         cache_dir: str | None = None,
     ):
-        if not isinstance(game, PotentialGame):
-            raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
-        if getattr(game, "coupled", False):  # per-agent stage dynamics only
-            raise SpecError("game", "coupled dynamics: use the dense backend (LM picks it)")
+        check_stage_game(game)
         self.game = game
         self.threads = threads
         self.compiled = bool(compiled)

@@ -238,6 +238,14 @@ class StructuredLinearization(StageLinearization):
         return self._diag
 
 
+def check_stage_game(game) -> None:
+    """Stage-wise backends need a :class:`PotentialGame` with per-agent stage dynamics."""
+    if not isinstance(game, PotentialGame):
+        raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
+    if getattr(game, "coupled", False):
+        raise SpecError("game", "coupled dynamics: use the dense backend (LM picks it)")
+
+
 def _bcast(mask, a):
     return mask.reshape(mask.shape + (1,) * (a.ndim - 1))
 
@@ -262,10 +270,7 @@ class StructuredGN:
         compiled: bool = False,
         cache_dir: str | None = None,
     ):
-        if not isinstance(game, PotentialGame):
-            raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
-        if getattr(game, "coupled", False):  # per-agent stage dynamics only
-            raise SpecError("game", "coupled dynamics: use the dense backend (LM picks it)")
+        check_stage_game(game)
         self.game = game
         self.threads = threads
         self.compiled = bool(compiled)

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import click
 
+from epo_casadi.game import PotentialGame
+
 #: functions exported when no --function is given (cheap to build and to compile)
 DEFAULT_FUNCTIONS = ("rollout", "residual", "jacobian", "energy", "gradient", "agent_costs")
 EXPORT_FORMAT = "epo-export/1"
@@ -105,23 +107,7 @@ def export_game(
     "--function",
     "functions",
     multiple=True,
-    type=click.Choice(
-        [
-            "rollout",
-            "residual",
-            "energy",
-            "gradient",
-            "jacobian",
-            "hessian",
-            "gn_hessian",
-            "agent_costs",
-            "pseudo_gradient",
-            "term_energies",
-            "lm_terms",
-            "traj_residual",
-            "traj_agent_costs",
-        ]
-    ),
+    type=click.Choice(PotentialGame.FUNCTIONS),
     help=f"A named function to export (repeatable; default: {', '.join(DEFAULT_FUNCTIONS)}).",
 )
 @click.option(

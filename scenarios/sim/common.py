@@ -194,3 +194,12 @@ class Latch:
     def set(self, value: str) -> None:
         if self.value == "running" and value != "running":
             self.value = value
+
+
+def check_command(command, names: str) -> np.ndarray:
+    """The ego's command as 2 finite numbers (``names``, e.g. ``"a, delta"``), else
+    :class:`SpecError` naming ``command``."""
+    u = np.asarray(command, dtype=float).reshape(-1)
+    if u.shape != (2,) or not np.all(np.isfinite(u)):
+        raise SpecError("command", f"expected 2 finite numbers ({names}), got {command!r}")
+    return u

@@ -49,6 +49,7 @@ from .common import (
     Latch,
     Sensor,
     build_options,
+    check_command,
     check_range,
     check_sensor,
     gap_decision,
@@ -175,9 +176,7 @@ class CrossingWorld:
     def step(self, command: np.ndarray) -> Observation:
         if not self._ready:
             raise SpecError("crossing", "call reset(seed) before step(command)")
-        u = np.asarray(command, dtype=float).reshape(-1)
-        if u.shape != (2,) or not np.all(np.isfinite(u)):
-            raise SpecError("command", f"expected 2 finite numbers (a, omega), got {command!r}")
+        u = check_command(command, "a, omega")
         ped_u = self._pedestrian_command()
         self.x[0] = self.vehicle.step(self.x[0], u, self.dt)
         self.x[1] = self.vehicle.step(self.x[1], ped_u, self.dt)

@@ -48,6 +48,7 @@ from .common import (
     Latch,
     Sensor,
     build_options,
+    check_command,
     check_range,
     check_sensor,
     seeds,
@@ -248,9 +249,7 @@ class MergeWorld(HighwayWorld):
     def step(self, command: np.ndarray) -> Observation:
         if not self._ready:
             raise SpecError("merge", "call reset(seed) before step(command)")
-        u = np.asarray(command, dtype=float).reshape(-1)
-        if u.shape != (2,) or not np.all(np.isfinite(u)):
-            raise SpecError("command", f"expected 2 finite numbers (a, delta), got {command!r}")
+        u = check_command(command, "a, delta")
         self.ego.act({"acceleration": float(u[0]), "steering": float(u[1])})
         self.road.act()
         self.road.step(self.dt)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import casadi as ca
 import numpy as np
@@ -40,6 +41,17 @@ from epo_casadi.errors import SpecError, check_number
 __all__ = ["VehicleModel", "KINDS"]
 
 KINDS = ("unicycle", "bicycle")
+
+
+#: the operations of :meth:`VehicleModel._integrate` on numpy arrays and CasADi expressions
+_NUMPY = SimpleNamespace(
+    where=np.where, fmin=np.minimum, fmax=np.maximum, cos=np.cos, sin=np.sin, tan=np.tan,
+    atan=np.arctan,
+)  # fmt: skip
+_CASADI = SimpleNamespace(
+    where=ca.if_else, fmin=ca.fmin, fmax=ca.fmax, cos=ca.cos, sin=ca.sin, tan=ca.tan,
+    atan=ca.atan,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,33 @@ class VehicleModel:
             lo, hi = np.maximum(lo, u_prev - r), np.minimum(hi, u_prev + r)
         return np.minimum(np.maximum(u, lo), hi)
 
+    # ------------------------------------------------------------------ the step, once
+    def _integrate(self, px, py, v, th, a, s, dt: float, m):
+        """``substeps`` explicit steps of ``dt / substeps`` with the speed clip, written
+        once for numpy arrays and CasADi expressions (``m``: :data:`_NUMPY` / :data:`_CASADI`)."""
+        h = dt / self.substeps
+        for _ in range(self.substeps):  # a fixed, small number of sub-steps (not samples)
+            if math.isfinite(self.v_max):
+                a = m.where(v > self.v_max, m.fmin(a, self.v_max - v), a)
+            if math.isfinite(self.v_min):
+                a = m.where(v < self.v_min, m.fmax(a, self.v_min - v), a)
+            if self.kind == "unicycle":
+                px, py, v, th = (
+                    px + v * m.cos(th) * h,
+                    py + v * m.sin(th) * h,
+                    v + a * h,
+                    th + s * h,
+                )
+            else:
+                beta = m.atan(0.5 * m.tan(s))
+                px, py, v, th = (
+                    px + v * m.cos(th + beta) * h,
+                    py + v * m.sin(th + beta) * h,
+                    v + a * h,
+                    th + v * m.sin(beta) / (self.length / 2) * h,
+                )
+        return px, py, v, th
+
     # ------------------------------------------------------------------ numpy
     def step(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """One step of ``dt``: ``x`` ``(..., 4)``, ``u`` ``(..., 2)`` -> ``(..., 4)`` (float64)."""
@@ -116,27 +155,7 @@ class VehicleModel:
         shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
         px, py, v, th = (np.broadcast_to(x[..., i], shape) for i in range(4))
         a, s = (np.broadcast_to(u[..., i], shape) for i in range(2))
-        h = dt / self.substeps
-        for _ in range(self.substeps):  # a fixed, small number of sub-steps (not samples)
-            if math.isfinite(self.v_max):
-                a = np.where(v > self.v_max, np.minimum(a, self.v_max - v), a)
-            if math.isfinite(self.v_min):
-                a = np.where(v < self.v_min, np.maximum(a, self.v_min - v), a)
-            if self.kind == "unicycle":
-                px, py, v, th = (
-                    px + v * np.cos(th) * h,
-                    py + v * np.sin(th) * h,
-                    v + a * h,
-                    th + s * h,
-                )
-            else:
-                beta = np.arctan(0.5 * np.tan(s))
-                px, py, v, th = (
-                    px + v * np.cos(th + beta) * h,
-                    py + v * np.sin(th + beta) * h,
-                    v + a * h,
-                    th + v * np.sin(beta) / (self.length / 2) * h,
-                )
+        px, py, v, th = self._integrate(px, py, v, th, a, s, dt, _NUMPY)
         return np.stack([px, py, v, th], axis=-1)
 
     def rollout(self, x0: np.ndarray, U: np.ndarray, dt: float) -> np.ndarray:
@@ -175,28 +194,7 @@ class VehicleModel:
     def casadi_step(self, x, u, dt: float):
         """The same step on CasADi expressions ``x`` (4) and ``u`` (2)."""
         px, py, v, th = x[0], x[1], x[2], x[3]
-        a, s = u[0], u[1]
-        h = dt / self.substeps
-        for _ in range(self.substeps):
-            if math.isfinite(self.v_max):
-                a = ca.if_else(v > self.v_max, ca.fmin(a, self.v_max - v), a)
-            if math.isfinite(self.v_min):
-                a = ca.if_else(v < self.v_min, ca.fmax(a, self.v_min - v), a)
-            if self.kind == "unicycle":
-                px, py, v, th = (
-                    px + v * ca.cos(th) * h,
-                    py + v * ca.sin(th) * h,
-                    v + a * h,
-                    th + s * h,
-                )
-            else:
-                beta = ca.atan(0.5 * ca.tan(s))
-                px, py, v, th = (
-                    px + v * ca.cos(th + beta) * h,
-                    py + v * ca.sin(th + beta) * h,
-                    v + a * h,
-                    th + v * ca.sin(beta) / (self.length / 2) * h,
-                )
+        px, py, v, th = self._integrate(px, py, v, th, u[0], u[1], dt, _CASADI)
         return ca.vertcat(px, py, v, th)
 
     def function(self, dt: float) -> ca.Function:
