@@ -54,7 +54,8 @@ __all__ = ["BACKBONES", "Encoder", "HistoryTransformer", "build_backbone", "lane
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
 
 
-def _mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) -> nn.Sequential:
+def mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) -> nn.Sequential:
+    """``layers`` linear layers of ``width`` with ReLU (and LayerNorm with ``norm="layer"``)."""
     mods: list[nn.Module] = []
     d = i
     for _ in range(layers - 1):
@@ -127,10 +128,10 @@ class Encoder(nn.Module):
         if cfg.backbone == "hivt":
             self.local = HistoryTransformer(cfg.hist_width, cfg.hist_layers, cfg.heads)
             # pose of the agent in the scene frame: (x, y, cos theta, sin theta)
-            self.pose = _mlp(4, cfg.hist_width, cfg.hist_width, norm="layer", layers=2)
+            self.pose = mlp(4, cfg.hist_width, cfg.hist_width, norm="layer", layers=2)
         else:
             self.lstm = nn.LSTM(5, cfg.hist_width, num_layers=cfg.hist_layers, batch_first=True)
-        self.lane = _mlp(4, cfg.lane_width, cfg.lane_width, norm="layer")
+        self.lane = mlp(4, cfg.lane_width, cfg.lane_width, norm="layer")
         self.agent_proj = nn.Linear(cfg.hist_width, W)
         self.lane_proj = nn.Linear(cfg.lane_width, W)
         self.attn = nn.MultiheadAttention(W, h, batch_first=True)

@@ -157,17 +157,7 @@ class ModelConfig:
         return asdict(self)
 
 
-def mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) -> nn.Sequential:
-    mods: list[nn.Module] = []
-    d = i
-    for _ in range(layers - 1):
-        mods.append(nn.Linear(d, width))
-        if norm == "layer":
-            mods.append(nn.LayerNorm(width))
-        mods.append(nn.ReLU())
-        d = width
-    mods.append(nn.Linear(d, o))
-    return nn.Sequential(*mods)
+mlp = _backbones.mlp  # one MLP builder for the encoders and the decoders
 
 
 # The observation encoders (V-LSTM, VIBES, HiVT-M) live in learning.backbones.
