@@ -358,6 +358,8 @@ def _fused_layer(layer: GameLayer) -> GameLayer:
     from solvers.codegen import CompilerError, find_compiler
     from solvers.fast_gn import FusedGN
 
+    if isinstance(layer.core.backend, FusedGN):  # trained with it (the default)
+        return layer
     try:
         find_compiler()
         compiled = True

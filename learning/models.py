@@ -68,12 +68,43 @@ __all__ = [
     "goal_candidates",
     "scene_reference",
     "ModelConfig",
+    "LAYER_BACKENDS",
+    "EXECUTION_SETTINGS",
+    "layer_execution",
     "build_model",
     "EPOModel",
     "SCModel",
     "VLSTMModel",
     "Encoder",
 ]
+
+
+#: values of ``ModelConfig.layer_backend``
+LAYER_BACKENDS = ("auto", "fused", "structured", "dense")
+#: model settings that choose how the layer computes, not what: a run may resume with others
+EXECUTION_SETTINGS = ("layer_backend", "layer_compiled")
+
+
+def layer_execution(cfg: ModelConfig) -> tuple[str, bool]:
+    """The (backend name, compiled) pair that ``cfg``'s layer settings resolve to here.
+
+    ``layer_compiled="yes"`` without a C compiler raises :class:`solvers.codegen.CompilerError`
+    when the layer is built; ``"auto"`` falls back to the interpreter, and the ``"auto"``
+    backend then to ``"structured"`` (faster than the interpreted fused backend in a batch).
+    """
+    from solvers.codegen import CompilerError, find_compiler
+
+    compiled = cfg.layer_compiled == "yes"
+    if cfg.layer_compiled == "auto":
+        try:
+            find_compiler()
+            compiled = True
+        except CompilerError:
+            compiled = False
+    backend = cfg.layer_backend
+    if backend == "auto":
+        backend = "fused" if compiled else "structured"
+    return backend, compiled
 
 
 @dataclass(frozen=True)
@@ -99,6 +130,14 @@ class ModelConfig:
     goal_rings: int = 5  #: generated candidates (no scene candidates, no lanes): rings ...
     goal_angles: int = 12  #: ... x angles around the agent (paper: G = 60 goal points)
     goal_range: float = 5.0  #: radius in metres of the outermost candidate ring
+    #: Gauss-Newton backend of ours' game layer (an execution detail: every backend gives the
+    #: same steps to rounding, tested to 1e-12, so a run may resume with another): "auto"
+    #: (fused with generated C when a C compiler is found, else structured: the fastest
+    #: measured in a training batch, docs/layer.md), "fused", "structured" or "dense"
+    layer_backend: str = "auto"
+    #: generated C for the layer's functions (backend and backward pass): "auto" (when a C
+    #: compiler is found; compiled once per game structure, cached on disk), "yes" or "no"
+    layer_compiled: str = "auto"
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm", "tgl"):
@@ -150,6 +189,16 @@ class ModelConfig:
             )
         for k in ("step_size", "damping", "goal_range"):
             check_number(f"model.{k}", getattr(self, k), lo=0, lo_open=True)
+        if self.layer_backend not in LAYER_BACKENDS:
+            raise SpecError(
+                "model.layer_backend",
+                f"expected one of {', '.join(map(repr, LAYER_BACKENDS))}, got {self.layer_backend!r}",
+            )
+        if self.layer_compiled not in ("auto", "yes", "no"):
+            raise SpecError(
+                "model.layer_compiled",
+                f"expected 'auto', 'yes' or 'no', got {self.layer_compiled!r}",
+            )
         for k in ("learned_init", "goal_features"):
             check_bool(f"model.{k}", getattr(self, k))
 
@@ -338,15 +387,20 @@ class EPOModel(_Base):
             mlp(self.N * W, w, M * len(self.pair_idx), norm="layer"), nn.Softplus()
         )
         self.init_dec = mlp(W, w, M * self.K * self.nu, norm="layer")
-        opts = LMOptions.paper(steps=cfg.lm_steps, step_size=cfg.step_size, damping=cfg.damping)
+        backend, compiled = layer_execution(cfg)
+        run = {"backend": backend, "compiled": compiled and backend != "dense"}
+        opts = LMOptions.paper(
+            steps=cfg.lm_steps, step_size=cfg.step_size, damping=cfg.damping, **run
+        )
         if cfg.backward == "implicit":
             opts = LMOptions(
                 steps=max(cfg.lm_steps, 50),
                 step_size=1.0,
                 damping=cfg.damping,
                 adaptive_damping=False,
+                **run,
             )
-        self.layer = GameLayer(game, opts, backward=cfg.backward)
+        self.layer = GameLayer(game, opts, backward=cfg.backward, compiled=compiled)
         self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
 
     def decode_goals(self, scene: dict, z: torch.Tensor) -> dict:

@@ -65,7 +65,7 @@ from scenarios.dataset import MANIFEST, DatasetError, check_output_dir, fsync_re
 
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
-from .models import ModelConfig, build_model, count_parameters
+from .models import EXECUTION_SETTINGS, ModelConfig, build_model, count_parameters
 from .scoring import METRICS, evaluate_model
 
 __all__ = [
@@ -268,8 +268,17 @@ def _checkpoint_config(ck: dict, where: str) -> TrainConfig:
         raise CheckpointError(f"{where}.config", str(e)) from None
 
 
+def _settings(d: dict) -> dict:
+    """A config dict without the model's execution settings (the layer's backend and
+    compilation: the same steps to rounding), so a run may resume with others."""
+    if isinstance(d.get("model"), dict):
+        d = {**d, "model": {k: v for k, v in d["model"].items() if k not in EXECUTION_SETTINGS}}
+    return d
+
+
 def _run_setting_diff(saved: dict, now: dict) -> str | None:
     """First training setting (``model.kind``, ``seed``, ...) in which two configs differ."""
+    saved, now = _settings(saved), _settings(now)
     for k in now:
         if k in RESUMABLE_CHANGES or saved.get(k) == now[k]:
             continue
@@ -549,8 +558,8 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
         )
     if ck_path.exists():
         state = load_checkpoint(ck_path)
-        old = _checkpoint_config(state, str(ck_path)).to_dict()
-        new = cfg.to_dict()
+        old = _settings(_checkpoint_config(state, str(ck_path)).to_dict())
+        new = _settings(cfg.to_dict())
         for k in new:
             if k not in RESUMABLE_CHANGES and old.get(k) != new[k]:
                 raise CheckpointError(

@@ -67,9 +67,15 @@ def runs(tmp_path_factory):
     data = synthetic_dataset()
     root = tmp_path_factory.mktemp("planner-runs")
     out = {}
+    # ours trained with the structured backend, so that the fused planner differs from it
+    layer = {"layer_backend": "structured", "layer_compiled": "no"}
     for kind in ("epo", "sc", "vlstm"):
         cfg = TrainConfig(
-            model=ModelConfig(kind=kind, **TINY), epochs=1, batch_size=8, lr=1e-3, val_split=None
+            model=ModelConfig(kind=kind, **TINY, **(layer if kind == "epo" else {})),
+            epochs=1,
+            batch_size=8,
+            lr=1e-3,
+            val_split=None,
         )
         train(data, root / kind, cfg, progress=False)
         out[kind] = root / kind

@@ -184,3 +184,54 @@ def test_train_config_defaults_and_validation():
         with pytest.raises(SpecError) as e:
             TrainConfig(**kw)
         assert e.value.field == field
+
+
+def test_layer_backends_train_alike_and_resume_across(tmp_path):
+    """The layer's backend is an execution setting: an epoch of ours with the fused backend
+    in generated C (the default where a compiler is found) gives the losses and validation
+    metrics of the interpreted structured backend to rounding; a run started with one
+    resumes with the other, while a real setting change is still refused."""
+    from learning.models import layer_execution
+    from solvers.codegen import CompilerError, find_compiler
+    from solvers.fast_gn import FusedGN
+    from solvers.structured import StructuredGN
+
+    try:
+        find_compiler()
+    except CompilerError:
+        pytest.skip("no C compiler")
+    auto = ModelConfig(kind="epo", **TINY)
+    assert layer_execution(auto) == ("fused", True)
+    data = synthetic_dataset()
+    with SceneDataset(data, "train") as ds:
+        assert isinstance(build_model(auto, ds.game).layer.core.backend, FusedGN)
+    rows = {}
+    for name, layer in (
+        ("structured", dict(layer_backend="structured", layer_compiled="no")),
+        ("fused", dict(layer_backend="auto", layer_compiled="auto")),
+    ):
+        cfg = _cfg(model=ModelConfig(kind="epo", **TINY, **layer), epochs=1)
+        train(data, tmp_path / name, cfg, progress=False)
+        with open(tmp_path / name / "metrics.csv") as f:
+            rows[name] = next(csv.DictReader(f))
+    with SceneDataset(data, "train") as ds:
+        slow = ModelConfig(kind="epo", **TINY, layer_backend="structured", layer_compiled="no")
+        assert isinstance(build_model(slow, ds.game).layer.core.backend, StructuredGN)
+    for k in ("train_loss", "train_imitation", "val_minADE", "val_minSFDE"):
+        a, b = float(rows["structured"][k]), float(rows["fused"][k])
+        assert abs(a - b) <= 1e-6 * (1 + abs(a)), (k, a, b)  # float32 network, float64 layer
+    # resume the structured run with the fused backend for a second epoch: accepted
+    cfg = _cfg(model=ModelConfig(kind="epo", **TINY), epochs=2)
+    res = train(data, tmp_path / "structured", cfg, progress=False)
+    assert res.epochs == 2 and res.resumed_from is not None
+    with pytest.raises(CheckpointError, match="lm_steps"):
+        train(
+            data,
+            tmp_path / "structured",
+            _cfg(model=ModelConfig(kind="epo", **TINY, lm_steps=3), epochs=3),
+            progress=False,
+        )
+    with pytest.raises(SpecError, match="model.layer_backend"):
+        ModelConfig(layer_backend="gpu")
+    with pytest.raises(SpecError, match="model.layer_compiled"):
+        ModelConfig(layer_compiled=True)
