@@ -118,6 +118,10 @@ class AgentSpec:
 
     ``x0``, ``goal``, ``vref`` and ``path`` are the *default* values of the agent's
     parameter blocks; every one of them can be changed per solve through ``p``.
+    ``radius`` is a number of the game unless ``radius_param`` is true: then it is the
+    default of a parameter block ``radius.<name>`` (group ``"radius"``), so one game can
+    carry each problem's own radius (e.g. half of each vehicle's length); pair features
+    see it as the symbolic ``AgentContext.radius``.
     """
 
     name: str
@@ -128,6 +132,7 @@ class AgentSpec:
     goal: Sequence[float] | None = None
     vref: float | None = None
     path: Sequence[Sequence[float]] | None = None
+    radius_param: bool = False
 
     def __post_init__(self):
         where = f"agents[{self.name!r}]"
@@ -144,6 +149,10 @@ class AgentSpec:
         r = self.radius
         if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r) or r < 0:
             raise SpecError(f"{where}.radius", f"expected a finite number >= 0 (metres), got {r!r}")
+        if not isinstance(self.radius_param, bool):
+            raise SpecError(
+                f"{where}.radius_param", f"expected true or false, got {self.radius_param!r}"
+            )
         if self.x0 is not None:
             object.__setattr__(self, "x0", _finite_vector(self.x0, dyn.nx, f"{where}.x0"))
         if self.goal is not None:
@@ -225,6 +234,8 @@ class AgentSpec:
         for f in self.features:
             out.update(f.refs())
         out.update({n: s.size for n, s in self.param_specs().items()})
+        if self.radius_param:
+            out["radius"] = 1
         return out
 
     def to_dict(self) -> dict:
@@ -239,6 +250,8 @@ class AgentSpec:
                 d[k] = list(getattr(self, k)) if k != "vref" else self.vref
         if self.path is not None:
             d["path"] = [list(p) for p in self.path]
+        if self.radius_param:
+            d["radius_param"] = True
         return d
 
 
@@ -399,13 +412,21 @@ class GameSpec:
         }
 
 
+def agent_radius(agent: AgentSpec, refs: dict):
+    """What pair features see as an agent's radius: the symbolic ``radius`` block of
+    ``refs`` for an agent with ``radius_param``, else the spec's number."""
+    if agent.radius_param:
+        return refs["radius"][0]
+    return float(agent.radius)
+
+
 # --------------------------------------------------------------------------------------
 # Parameter layout
 # --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ParamBlock:
     name: str  # e.g. "x0.robot", "w.robot.goal", "w.robot-ped.collision"
-    group: str  # "x0" | "goal" | "vref" | "path" | "feature" | "w_own" | "w_pair"
+    group: str  # "x0" | "goal" | "vref" | "path" | "radius" | "feature" | "w_own" | "w_pair"
     start: int
     size: int
     default: tuple[float, ...]
@@ -419,7 +440,7 @@ class ParamBlock:
 class ParamLayout:
     """Names, offsets and defaults of the flat parameter vector ``p``."""
 
-    GROUPS = ("x0", "goal", "vref", "path", "feature", "w_own", "w_pair")
+    GROUPS = ("x0", "goal", "vref", "path", "radius", "feature", "w_own", "w_pair")
 
     def __init__(self, blocks: Sequence[ParamBlock]):
         self.blocks: tuple[ParamBlock, ...] = tuple(blocks)
@@ -597,6 +618,9 @@ class PotentialGame:
                     [f"path.{a.name}.{c}{j}" for j in range(n) for c in "xy"],
                 )
         for a in self.agents:
+            if a.radius_param:
+                add(f"radius.{a.name}", "radius", [a.radius], [f"radius.{a.name}"])
+        for a in self.agents:
             for s in a.param_specs().values():
                 add(f"{s.name}.{a.name}", "feature", s.default, s.entry_names(a.name))
         for a in self.agents:
@@ -618,7 +642,7 @@ class PotentialGame:
             for r in a.refs():
                 b = self.params[f"{r}.{a.name}"]
                 refs[r] = p[b.start : b.start + b.size]
-            ctxs.append(AgentContext(a.dynamics, X, U, self.dt, refs, float(a.radius)))
+            ctxs.append(AgentContext(a.dynamics, X, U, self.dt, refs, agent_radius(a, refs)))
         return ctxs
 
     def agent_steps(self, xs: Sequence, us: Sequence) -> list:
@@ -677,7 +701,8 @@ class PotentialGame:
         fns: dict = {}
 
         def signature(c: AgentContext):
-            return (c.dynamics, float(c.radius), tuple((n, v.shape) for n, v in c.refs.items()))
+            r = "param" if "radius" in c.refs else float(c.radius)
+            return (c.dynamics, r, tuple((n, v.shape) for n, v in c.refs.items()))
 
         def pair_function(ca_: AgentContext, cb: AgentContext) -> ca.Function:
             key = (signature(ca_), signature(cb))
@@ -687,7 +712,8 @@ class PotentialGame:
                     X = ca.SX.sym(f"X_{tag}", *c.X.shape)
                     U = ca.SX.sym(f"U_{tag}", *c.U.shape)
                     refs = {n: ca.SX.sym(f"{n}_{tag}", *v.shape) for n, v in c.refs.items()}
-                    syms.append(AgentContext(c.dynamics, X, U, c.dt, refs, c.radius))
+                    r = refs["radius"] if "radius" in c.refs else c.radius
+                    syms.append(AgentContext(c.dynamics, X, U, c.dt, refs, r))
                     ins += [X, U, *refs.values()]
                 fns[key] = ca.Function(f"pair_{pf.key}", ins, [pf.residual(*syms)])
             return fns[key]
@@ -939,6 +965,20 @@ class PotentialGame:
             x[..., self.xoff[i] : self.xoff[i + 1]].reshape(*x.shape[:-1], self.K + 1, self.nx[i])
             for i in range(self.N)
         ]
+
+    def radii(self, p: np.ndarray | None = None) -> np.ndarray:
+        """Every agent's collision radius ``(..., N)``: the spec's, or for agents with
+        ``radius_param`` the entry ``radius.<name>`` of ``p`` ``(..., n_p)`` (its default
+        when ``p`` is None)."""
+        fixed = np.array([float(a.radius) for a in self.agents])
+        if p is None:
+            return fixed
+        p = np.asarray(p, dtype=float)
+        out = np.broadcast_to(fixed, p.shape[:-1] + (self.N,)).copy()
+        for i, a in enumerate(self.agents):
+            if a.radius_param:
+                out[..., i] = p[..., self.params[f"radius.{a.name}"].start]
+        return out
 
     def positions(self, x: np.ndarray) -> np.ndarray:
         """Positions ``(..., N, K+1, 2)`` of every agent (first two state entries)."""

@@ -32,7 +32,7 @@ import numpy as np
 
 from .arg_order import p_u_order
 from .errors import SpecError
-from .game import PotentialGame, Term
+from .game import PotentialGame, Term, agent_radius
 
 __all__ = [
     "format_steps",
@@ -391,7 +391,6 @@ class FormulaSymbols:
         self.agent: str = a.name
         self.dynamics = a.dynamics
         self.dt: float = game.dt
-        self.radius: float = float(a.radius)
         self.X = _StepColumns(a.dynamics.state_names, prefix)
         self.U = _StepColumns(a.dynamics.control_names, prefix)
         self._ref_names: dict[str, str] = {}
@@ -400,6 +399,8 @@ class FormulaSymbols:
             b = game.params[f"{r}.{a.name}"]
             self._ref_names[r] = b.name
             self.refs[r] = ca.vertcat(*[ca.SX.sym(e) for e in b.entries])
+        #: the spec's number, or the symbol ``radius.<agent>`` of an agent with radius_param
+        self.radius = agent_radius(a, self.refs)
 
     def ref_name(self, name: str) -> str:
         """The parameter block of a reference (``path`` -> ``path.robot``)."""
@@ -462,7 +463,7 @@ def _generic_residual(game: PotentialGame, t: Term, feature) -> tuple[str, str]:
             r: ca.vertcat(*[ca.SX.sym(e) for e in game.params[f"{r}.{a.name}"].entries])
             for r in a.refs()
         }
-        ctxs.append(AgentContext(a.dynamics, X, U, game.dt, refs, float(a.radius)))
+        ctxs.append(AgentContext(a.dynamics, X, U, game.dt, refs, agent_radius(a, refs)))
     steps = list(feature.steps(Kf))
     r = feature.residual(*ctxs)
     if not steps or r.shape[0] % len(steps):

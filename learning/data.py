@@ -20,6 +20,7 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     lanes          (B, L, P, 2)   float32   lane polylines, the map input (if stored)
     paths          (B, N, P, 2)   float32   each agent's reference lane (game ``path``; if stored)
     vref           (B, N)         float32   each agent's reference speed (game ``vref``; if stored)
+    radius         (B, N)         float32   each agent's collision radius (game ``radius``; if stored)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states
@@ -63,7 +64,16 @@ __all__ = [
 REQUIRED_FIELDS = ("history", "future")
 #: fields used when present
 #: ``lanes``/``paths``/``vref``: map input and fixed game references (left-turn datasets)
-OPTIONAL_FIELDS = ("goals", "goal_candidates", "history_valid", "gt_mode", "lanes", "paths", "vref")
+OPTIONAL_FIELDS = (
+    "goals",
+    "goal_candidates",
+    "history_valid",
+    "gt_mode",
+    "lanes",
+    "paths",
+    "vref",
+    "radius",
+)
 
 
 def ground_truth(future, gt_mode=None):
@@ -105,6 +115,8 @@ def _left_turn_game(recipe: dict) -> PotentialGame:
 def _exid_game(recipe: dict) -> PotentialGame:
     from scenarios.exid import ExidRecipe, ExidScenario
 
+    # datasets written before radius_per_agent existed had one fixed radius in their game
+    recipe = {"radius_per_agent": False, **recipe}
     return ExidScenario(ExidRecipe.from_dict(recipe)).game
 
 
@@ -254,7 +266,7 @@ class SceneDataset(torch.utils.data.Dataset):
         if valid is None:
             valid = np.ones((n, self.history_steps), bool)
         out = {"history": np.ascontiguousarray(raw["history"], np.float32)}
-        for k in ("goals", "goal_candidates", "lanes", "paths", "vref"):
+        for k in ("goals", "goal_candidates", "lanes", "paths", "vref", "radius"):
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)

@@ -263,7 +263,8 @@ def scene_reference(scene: dict, field: str, agent: int, size: int) -> torch.Ten
     """Agent ``agent``'s fixed game reference from the scene, flattened to ``(B, size)``.
 
     ``paths`` ``(B, N, P, 2)`` fill the ``path`` block (``x_0, y_0, x_1, y_1, ...``, so
-    ``size = 2 P``); ``vref`` ``(B, N)`` fills the ``vref`` block (``size = 1``).
+    ``size = 2 P``); ``vref`` ``(B, N)`` fills the ``vref`` block and ``radius`` ``(B, N)``
+    the ``radius`` block (``size = 1``).
     """
     t = scene[field]
     B = scene["history"].shape[0]
@@ -422,9 +423,10 @@ class EPOModel(_Base):
         self, scene: dict, z: torch.Tensor, goals: torch.Tensor | None = None
     ) -> torch.Tensor:
         """Parameters ``(B, M, n_p)``: current states from the scene, goals ``(B, M, N, 2)``
-        (default: :meth:`decode_goals`), predicted weights; the ``path`` and ``vref``
-        references from the scene's ``paths`` and ``vref`` when present
-        (:func:`scene_reference`), else the game's defaults."""
+        (default: :meth:`decode_goals`), predicted weights; the ``path``, ``vref`` and
+        ``radius`` (games with ``AgentSpec.radius_param``) blocks from the scene's
+        ``paths``, ``vref`` and ``radius`` when present (:func:`scene_reference`), else the
+        game's defaults."""
         B, M, N = z.shape[0], self.cfg.modes, self.N
         L = self.game.params
         p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
@@ -436,7 +438,7 @@ class EPOModel(_Base):
             if f"goal.{a}" in L:
                 p[..., L[f"goal.{a}"].slice] = goals[:, :, i].to(z.dtype)
             # fixed references from the scene when it has them (else the game's defaults)
-            for block, field in (("path", "paths"), ("vref", "vref")):
+            for block, field in (("path", "paths"), ("vref", "vref"), ("radius", "radius")):
                 if f"{block}.{a}" in L and field in scene:
                     ref = scene_reference(scene, field, i, L[f"{block}.{a}"].size)
                     p[..., L[f"{block}.{a}"].slice] = ref.to(z.dtype)[:, None]

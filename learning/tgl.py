@@ -403,13 +403,20 @@ class TGLProblem:
         return len(self.pairs) * len(self.steps)
 
     def build(
-        self, x0: torch.Tensor, w_own: torch.Tensor, w_pair: torch.Tensor, goals, vref
+        self,
+        x0: torch.Tensor,
+        w_own: torch.Tensor,
+        w_pair: torch.Tensor,
+        goals,
+        vref,
+        radii: torch.Tensor | None = None,
     ) -> dict:
         """QP data ``P, q, A, lo, hi`` ``(B, ...)`` (float64) and the linear dynamics.
 
         ``x0`` ``(B, N, 4)`` current states (data); ``w_own`` ``(B, N, 5)`` non-negative
         weights of :data:`OWN_FEATURES`; ``w_pair`` ``(B, n_pairs)``; ``goals`` ``(B, N, 2)``;
-        ``vref`` ``(B, N)``. ``P`` and ``q`` are differentiable in the weights and references.
+        ``vref`` ``(B, N)``; ``radii`` ``(B, N)`` each problem's collision radii (None: the
+        game's, :attr:`radii`). ``P`` and ``q`` are differentiable in the weights and references.
         The energy is ``sum_f w_f ||R_f U_i - t_f||^2``: ``P`` is block diagonal (one
         ``2K x 2K`` block per agent, a diagonal for the slacks).
         """
@@ -472,7 +479,10 @@ class TGLProblem:
             Ac = x0.new_zeros(B, C, n)
             lc = x0.new_zeros(B, C)
             for c, (i, j) in enumerate(self.pairs):
-                reach = self.radii[i] + self.radii[j] + self.margin
+                if radii is None:
+                    reach = self.radii[i] + self.radii[j] + self.margin
+                else:
+                    reach = (radii[:, i] + radii[:, j]).to(f64)[:, None] + self.margin
                 d = pc[:, i] - pc[:, j]  # (B, S, 2) on the reference rollouts
                 nrm = d.norm(dim=-1, keepdim=True)
                 e = torch.tensor([1.0, 0.0], dtype=f64, device=dev)
@@ -529,6 +539,7 @@ class TGLModel(_Base):
     def __init__(self, cfg, game: PotentialGame):
         super().__init__(cfg, game)
         self.problem = TGLProblem.from_game(game)
+        self.radius_param = any(a.radius_param for a in game.spec.agents)
         W, M, w, N = cfg.global_width, cfg.modes, cfg.dec_width, self.N
         nf = len(OWN_FEATURES)
         self.own_dec = nn.Sequential(mlp(W, w, M * nf), nn.Softplus())
@@ -552,12 +563,16 @@ class TGLModel(_Base):
         goals = cv_end[:, None] + ref[..., :2]
         vref = x0[:, None, :, 2] + ref[..., 2]
         xx = x0[:, None].expand(B, M, N, 4).reshape(B * M, N, 4)
+        radii = None  # a game with radius parameters: each scene's radii (e.g. L / 2)
+        if self.radius_param and "radius" in scene:
+            radii = scene["radius"].detach().double()[:, None].expand(B, M, N).reshape(B * M, N)
         qp = pr.build(
             xx,
             w_own.reshape(B * M, N, -1),
             w_pair.reshape(B * M, -1),
             goals.reshape(B * M, N, 2),
             vref.reshape(B * M, N),
+            radii,
         )
         zq, status = qp_layer(qp["P"], qp["q"], qp["A"], qp["lo"], qp["hi"])
         traj = pr.trajectory(xx.double(), zq, qp["lin"])

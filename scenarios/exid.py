@@ -102,10 +102,11 @@ Game (App. F.3, exiD): ``N = 4`` unicycles, ``K = T = 20``, ``dt = 0.2``; per ag
 terminal goal (the goal decoder's), ``lane`` (:class:`~epo_casadi.features.Path` on
 ``paths``), ``vref`` (:class:`~epo_casadi.features.ReferenceVelocity` on ``vref``),
 velocity, acceleration, jerk, turn rate, turn acceleration; collision every 5th step.
-The game's radii are numbers of the game (``AgentSpec.radius``), not parameters, so one
-game cannot carry each sample's ``L / 2``: every agent has ``radius`` (default 2.5 m,
-``L / 2`` of a 5 m car); the per-sample ``L / 2`` is stored in ``radius`` for a model
-that sets it.
+Each agent's collision radius is a parameter of the game (``AgentSpec.radius_param``,
+block ``radius.v<i>``, default ``radius`` = 2.5 m, ``L / 2`` of a 5 m car), and ours fills
+it with the sample's ``L / 2`` (field ``radius``), the paper's ``r = L / 2``
+(``radius_per_agent``; False: every agent has ``radius``, a number of the game. Datasets
+written before this field existed keep that game: :func:`learning.data.dataset_game`).
 """
 
 from __future__ import annotations
@@ -135,7 +136,7 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_bool, check_number
 
 from .dataset import SPLITS, DatasetError, FieldSpec, Scenario
 from .maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
@@ -666,6 +667,9 @@ class ExidRecipe:
     goal_far: float = 1.4  #: ... to goal_far * v * T * dt + goal_margin ahead
     goal_margin: float = 10.0  #: (m)
     radius: float = 2.5  #: collision radius of every agent in the game (m): L / 2 of a 5 m car
+    #: each agent's radius is a game parameter that the model sets to the sample's L / 2
+    #: (the paper's r = L / 2); ``radius`` is then its default. False: ``radius`` for all
+    radius_per_agent: bool = True
     collision_every: int = 5  #: the collision term every this many steps (paper: 5)
     w_goal: float = 1.0  #: default weights of the game (the network predicts them)
     w_lane: float = 1.0
@@ -714,6 +718,7 @@ class ExidRecipe:
         check_number(f"{p}.val_fraction", self.val_fraction, lo=0.0, hi=0.9)
         for k in ("neighbour_range", "lane_ahead", "radius", "goal_far"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0, lo_open=True)
+        check_bool(f"{p}.radius_per_agent", self.radius_per_agent)
         for k in ("lane_behind", "goal_near", "goal_margin"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0)
         for f in fields(self):
@@ -898,7 +903,11 @@ class ExidScenario(Scenario):
                 TurnRate(weight=r.w_turn),
                 TurnAcceleration(weight=r.w_turnacc),
             ]
-            out.append(AgentSpec(f"v{i}", "unicycle", feats, radius=r.radius))
+            out.append(
+                AgentSpec(
+                    f"v{i}", "unicycle", feats, radius=r.radius, radius_param=r.radius_per_agent
+                )
+            )
         return out
 
     def game_spec(self) -> GameSpec:

@@ -10,6 +10,7 @@ plus optional solver options. The schema, with every field, is documented in
       - name: robot             # letters, digits, '_' ; unique
         dynamics: unicycle      # or {type: bicycle, wheelbase: 2.7}
         radius: 0.25            # metres, >= 0 (default 0.25)
+        radius_param: false     # true: radius is the default of a parameter radius.<name>
         x0: [0, -3, 1, 1.57]    # initial state, nx numbers (required)
         goal: [0, 3]            # required by the 'goal' feature
         vref: 1.0               # required by 'reference_velocity'
@@ -77,7 +78,17 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 #: billions of values and hang the loader.
 MAX_VALUES = 1_000_000
 _TOP_KEYS = ("horizon", "dt", "agents", "pair_features", "solver")
-_AGENT_KEYS = ("name", "dynamics", "radius", "x0", "goal", "vref", "path", "features")
+_AGENT_KEYS = (
+    "name",
+    "dynamics",
+    "radius",
+    "radius_param",
+    "x0",
+    "goal",
+    "vref",
+    "path",
+    "features",
+)
 _SOLVERS = ("lm", "ipopt", "ilq")
 #: the rule on weights that the game layer (learning.layer.GameLayer) enforces, said the
 #: same way wherever a weight enters: game files, --set, the feature objects
@@ -242,6 +253,11 @@ def _agent(a: Any, where: str) -> AgentSpec:
         )
     dyn = _dynamics(a["dynamics"], f"{where}.dynamics")
     radius = _number(a.get("radius", 0.25), f"{where}.radius", minimum=0.0, unit=" (metres)")
+    radius_param = a.get("radius_param", False)
+    if not isinstance(radius_param, bool):
+        raise SpecError(
+            f"{where}.radius_param", f"expected true or false, got {short_repr(radius_param)}"
+        )
     names = dyn.state_names
     x0 = _vector(a["x0"], len(names), f"{where}.x0", f"({', '.join(names)}) of '{dyn.name}'")
     goal = _vector(a["goal"], 2, f"{where}.goal", "(x, y)") if a.get("goal") is not None else None
@@ -277,7 +293,17 @@ def _agent(a: Any, where: str) -> AgentSpec:
             )
         feats.append(obj)
     return _wrap(
-        lambda: AgentSpec(name, dyn, feats, radius=radius, x0=x0, goal=goal, vref=vref, path=path),
+        lambda: AgentSpec(
+            name,
+            dyn,
+            feats,
+            radius=radius,
+            x0=x0,
+            goal=goal,
+            vref=vref,
+            path=path,
+            radius_param=radius_param,
+        ),
         where,
     )
 
@@ -701,6 +727,8 @@ def dump_game(spec: GameSpec | GameFile, solver_options: Mapping | None = None) 
             "radius": float(a.radius),
             "x0": [float(v) for v in (a.x0 if a.x0 is not None else (0.0,) * a.dynamics.nx)],
         }
+        if a.radius_param:
+            d["radius_param"] = True
         if a.goal is not None:
             d["goal"] = [float(v) for v in a.goal]
         if a.vref is not None:

@@ -200,13 +200,17 @@ def passing_sides(game: PotentialGame, states: np.ndarray, pass_angle: float = 0
     return np.where(np.abs(ang) < pass_angle, 0, np.sign(ang)).astype(int)
 
 
-def min_clearance(game: PotentialGame, states: np.ndarray) -> np.ndarray:
-    """Smallest ``dist_ij - r_i - r_j`` over pairs and steps ``k = 1..K``: ``(...)``."""
+def min_clearance(
+    game: PotentialGame, states: np.ndarray, p: np.ndarray | None = None
+) -> np.ndarray:
+    """Smallest ``dist_ij - r_i - r_j`` over pairs and steps ``k = 1..K``: ``(...)``; the
+    radii of agents with ``radius_param`` from ``p`` ``(..., n_p)`` (defaults if None)."""
     pos = game.positions(np.asarray(states))
     out = np.full(np.shape(states)[:-1], np.inf)
+    radii = game.radii(p)
     for a, b in _pairs(game):
         d = np.linalg.norm(pos[..., a, 1:, :] - pos[..., b, 1:, :], axis=-1)
-        r = game.agents[a].radius + game.agents[b].radius
+        r = radii[..., a] + radii[..., b]
         out = np.minimum(out, np.min(d, axis=-1) - r)
     return out
 
@@ -271,7 +275,7 @@ def solve_multimodal(
         [s is Status.CONVERGED or (mm.accept_max_iter and s is Status.MAX_ITER) for s in status]
     )
     finite = np.isfinite(res.controls).all(axis=1) & np.isfinite(res.states).all(axis=1)
-    clearance = min_clearance(game, res.states)
+    clearance = min_clearance(game, res.states, P)
     kept = good & finite & (clearance >= -mm.collision_tol)
     idx = np.nonzero(kept)[0]
     labels = np.full(n, -1, dtype=int)

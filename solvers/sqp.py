@@ -257,11 +257,12 @@ class SQPSolver:
         v_sym = [x, u]
         Ddyn = ca.horzcat(ca.jacobian(defect, x)[:, xcols.tolist()], ca.jacobian(defect, u))
         dists, reach, pairs = [], [], []
+        radii = game.radii()  # the defaults; a game with radius parameters: set per solve
         if opts.collision:
             for a in range(game.N):
                 for b in range(a + 1, game.N):
                     da, db = game.agents[a].dynamics, game.agents[b].dynamics
-                    rr = game.agents[a].radius + game.agents[b].radius + opts.collision_margin
+                    rr = radii[a] + radii[b] + opts.collision_margin
                     for k in range(1, K + 1):
                         xa = x[
                             int(game.xoff[a]) + k * game.nx[a] : int(game.xoff[a])
@@ -277,6 +278,8 @@ class SQPSolver:
         dist = ca.vertcat(*dists) if dists else ca.SX(0, 1)
         self.reach = np.asarray(reach, float)
         self.pairs = pairs
+        self._radius_param = any(ag.radius_param for ag in game.agents)
+        self._margin = float(opts.collision_margin)
         Ddist = ca.jacobian(dist, ca.vertcat(*v_sym))
         # reorder Ddist columns to v = (x[xcols], u)
         Ddist = ca.horzcat(
@@ -484,6 +487,10 @@ class SQPSolver:
         return res[0] if single else res
 
     def _solve_one(self, u: np.ndarray, p: np.ndarray, o: SQPOptions) -> dict:
+        if self._radius_param and self.pairs:  # each problem's radii (radius.<agent> in p)
+            r = self.game.radii(p)
+            ij = np.array([(a, b) for a, b, _ in self.pairs])
+            self.reach = r[ij[:, 0]] + r[ij[:, 1]] + self._margin
         if self.u_idx.size:  # start inside the control bounds (a box: projection is exact)
             u[self.u_idx] = np.clip(u[self.u_idx], self.u_lo, self.u_hi)
         nu_pen = float(o.merit_penalty)

@@ -276,6 +276,27 @@ def test_game_and_training_steps(data, tmp_path):
     coll = [tm for tm in game.terms if tm.feature == "collision"]
     assert coll and all(list(tm.steps) == [5, 10, 15, 20] for tm in coll)
     assert batch["goal_candidates"].shape == (2, 4, 60, 2) and batch["paths"].dtype == torch.float32
+    # r = L / 2 per agent (the paper): a parameter of the game that ours fills from the scene
+    assert [game.params[f"radius.v{i}"].group for i in range(4)] == ["radius"] * 4
+    from learning.models import ModelConfig, build_model
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(kind="epo", modes=5, goal_decoder="candidates", hist_width=8, hist_layers=1)
+    model = build_model(cfg, game).eval()
+    with torch.no_grad():
+        z = model.encoder(batch)
+        p = model.game_params(batch, z)
+    idx = game.params.group("radius")
+    want = batch["radius"].to(p.dtype)[:, None].expand(2, 5, 4)
+    assert torch.equal(p[..., idx], want) and not torch.allclose(want, torch.tensor(2.5))
+    # a dataset written before the field existed keeps its game's one fixed radius
+    from learning.data import dataset_game
+    from scenarios.dataset import read_manifest
+
+    m = read_manifest(data)
+    del m["recipe"]["radius_per_agent"]
+    old = dataset_game(m)
+    assert "radius.v0" not in old.params and old.radii().tolist() == [2.5] * 4
     small = dict(hist_width=8, hist_layers=1, lane_width=8, global_width=16, heads=2, dec_width=16)
     sets = [f"--set={k}={v}" for k, v in small.items()]
     for kind, extra in (
