@@ -5,6 +5,8 @@ Not a test. Run from the repository root::
     .venv/bin/python bench/bench_lm.py            # N in {2, 4, 8, 12}, K = 40, batches 1 and 64
     .venv/bin/python bench/bench_lm.py --quick    # smoke run: N = 2, batches 1 and 16
     .venv/bin/python bench/bench_lm.py --agents 2 4 --paths struct struct-C fused fused-C numpy
+    .venv/bin/python bench/bench_lm.py --agents 2 4 8 12 --horizons 20 40 80 160 \\
+        --paths fused-C --plot docs/figures/lm_step_scaling.png   # scaling in N and K
 
 Games: ``N`` unicycles on a circle crossing to the opposite side (the construction of
 ``tests/helpers.crossing_spec``: goal, velocity, acceleration, turn rate, three soft
@@ -29,6 +31,12 @@ and of process CPU time, divided by the batch size; BLAS is
 limited to ``--blas-threads`` (default 1) so every path but ``dense-thr`` uses one core.
 Dense paths at large batches are timed on ``--dense-cap`` problems of the batch (marked
 ``*``): their cost per problem does not shrink with the batch.
+
+A last table divides each path's CPU time by the estimate ``K d^3`` FLOP at ``--flops``
+(default 1e9) FLOP/s, ``d = nz + m`` the Riccati stage size (the leading term of the
+structured step, constant 1: the stage's Riccati update forms ``FG' P FG``, a Cholesky
+factor and ``Y'Y`` with a few ``d^3`` operations). ``--plot`` draws the log-log scaling of
+``--plot-path`` against ``K`` and ``d`` with fitted slopes and the estimate.
 """
 
 from __future__ import annotations
@@ -44,7 +52,9 @@ def _parse(argv=None):
     ap.add_argument(
         "--agents", type=int, nargs="+", default=[2, 4, 8, 12], help="numbers of agents N"
     )
-    ap.add_argument("--horizon", type=int, default=40, help="horizon K (steps)")
+    ap.add_argument(
+        "--horizon", "--horizons", type=int, nargs="+", default=[40], help="horizons K (steps)"
+    )
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64], help="batch sizes B")
     ap.add_argument(
         "--repeats", type=int, default=15, help="timed repeats per cell (median reported)"
@@ -81,9 +91,19 @@ def _parse(argv=None):
     ap.add_argument(
         "--quick", action="store_true", help="smoke run: N = 2, batches 1 and 16, 3 repeats"
     )
+    ap.add_argument(
+        "--plot",
+        default=None,
+        help="write the scaling figure of --plot-path (log-log time per problem and step "
+        "against K and against the stage size, fitted slopes, the K d^3 estimate) to this PNG",
+    )
+    ap.add_argument("--plot-path", default="fused-C", help="the path the figure shows")
+    ap.add_argument("--flops", type=float, default=1e9, help="FLOP/s of the estimate")
     args = ap.parse_args(argv)
     if args.quick:
         args.agents, args.batches, args.repeats = [2], [1, 16], 3
+    if args.plot and args.plot_path not in args.paths:
+        ap.error(f"--plot-path {args.plot_path} is not among --paths")
     return args
 
 
@@ -168,9 +188,9 @@ def inputs(game, B, seed=0):
 def main(args) -> int:
     threads = args.threads or default_threads()
     rows, notes = [], []
-    for N in args.agents:
+    for N, K in [(n, k) for n in args.agents for k in args.horizon]:
         t0 = time.perf_counter()
-        game = crossing_game(N=N, K=args.horizon)
+        game = crossing_game(N=N, K=K)
         backends = {}
         if "dense" in args.paths:
             backends["dense"] = DenseGN(game, threads=1)
@@ -184,21 +204,30 @@ def main(args) -> int:
                 game, threads=1, compiled=True, cache_dir=args.cache_dir
             )
             notes.append(
-                f"N={N}: struct-C library ready in {time.perf_counter() - tc:.1f} s "
+                f"N={N}, K={K}: struct-C library ready in {time.perf_counter() - tc:.1f} s "
                 "(compile on first use, then loaded from the cache)"
             )
         if "fused" in args.paths:
             backends["fused"] = FusedGN(game, threads=1)
             if backends["fused"].fallback:
                 notes.append(
-                    f"N={N}: fused delegates to StructuredGN: {backends['fused'].fallback}"
+                    f"N={N}, K={K}: fused delegates to StructuredGN: {backends['fused'].fallback}"
                 )
         if "fused-C" in args.paths:
-            tc = time.perf_counter()
-            backends["fused-C"] = FusedGN(game, threads=1, compiled=True, cache_dir=args.cache_dir)
+            tc, cc, pc = time.perf_counter(), _child_cpu(), time.process_time()
+            fc = backends["fused-C"] = FusedGN(
+                game, threads=1, compiled=True, cache_dir=args.cache_dir
+            )
             notes.append(
-                f"N={N}: fused-C library ready in {time.perf_counter() - tc:.1f} s "
-                "(compile on first use, then loaded from the cache)"
+                f"N={N}, K={K}: fused-C libraries ready in {time.perf_counter() - tc:.1f} s wall, "
+                f"{_child_cpu() - cc:.1f} s compiler CPU (0: loaded from the cache), "
+                f"{time.process_time() - pc:.1f} s CPU in this process"
+                + (f"; delegates: {fc.fallback}" if fc.fallback else "")
+                + (
+                    f"; staged linearization, {fc.stage_groups} stage groups"
+                    if fc.stage_groups
+                    else ""
+                )
             )
         ref = NumpyDenseGN(game) if "numpy" in args.paths else None
         print(
@@ -237,10 +266,12 @@ def main(args) -> int:
                 float(np.max(np.abs(v - base)) / max(np.max(np.abs(base)), 1e-300))
                 for v in check.values()
             )
-            rows.append((N, game.n_u, B, cells, err))
-    print(table(rows, args.paths, threads, args.horizon, wall=True))
+            rows.append((N, game.n_u, B, cells, err, K, stage_size(game)))
+    print(table(rows, args.paths, threads, wall=True))
     print()
-    print(table(rows, args.paths, threads, args.horizon, wall=False))
+    print(table(rows, args.paths, threads, wall=False))
+    print()
+    print(estimate_table(rows, args.paths, args.flops))
     print()
     for n in notes:
         print(f"- {n}")
@@ -253,13 +284,113 @@ def main(args) -> int:
     print(
         "- `max rel diff`: largest difference between the steps of all paths, relative to the largest entry."
     )
+    if args.plot:
+        plot_scaling(rows, args.plot_path, args.flops, args.plot)
+        print(f"- figure: {args.plot}")
     return 0
 
 
-def table(rows, paths, threads, K, wall=True):
+def _child_cpu() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def stage_size(game) -> int:
+    """``d = nz + m``: the Riccati stage size (augmented state plus joint controls)."""
+    from solvers.structured import stage_layout
+
+    return stage_layout(game).d
+
+
+def estimate_table(rows, paths, flops):
+    """Measured CPU time per problem and step beside the ``K d^3`` FLOP estimate."""
+    head = ["N", "K", "d", "B", f"K d^3 / {flops:.0e} FLOP/s ms"] + [
+        f"{p} / estimate" for p in paths
+    ]
+    out = [
+        "Measured CPU time per problem and step over the estimate `K d^3` FLOP at "
+        f"{flops:.0e} FLOP/s (constant 1; d = stage size):",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join("---:" for _ in head) + "|",
+    ]
+    for N, _, B, cells, _, K, d in rows:
+        est = 1e3 * K * d**3 / flops
+        vals = [f"{cells[p][1] / est:.2f}" for p in paths]
+        out.append("| " + " | ".join([str(N), str(K), str(d), str(B), f"{est:.4f}"] + vals) + " |")
+    return "\n".join(out)
+
+
+def fit_slope(x, y) -> float:
+    """Least-squares slope of ``log y`` against ``log x``."""
+    return float(np.polyfit(np.log(x), np.log(y), 1)[0])
+
+
+def plot_scaling(rows, path, flops, png):
+    """Log-log CPU ms per problem and step of ``path``: against K (one line per N and B)
+    and against the stage size d (one line per K and B), fitted slopes in the legend,
+    with the ``K d^3`` estimate dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = {(N, K, B): (cells[path][1], d) for N, _, B, cells, _, K, d in rows}
+    Ns = sorted({k[0] for k in data})
+    Ks = sorted({k[1] for k in data})
+    Bs = sorted({k[2] for k in data})
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    marks = {b: m for b, m in zip(Bs, ["o", "s", "^", "v"], strict=False)}
+    for N in Ns:
+        for B in Bs:
+            pts = [(K, data[N, K, B][0]) for K in Ks if (N, K, B) in data]
+            if len(pts) < 2:
+                continue
+            x, y = map(np.array, zip(*pts, strict=True))
+            (ln,) = axes[0].loglog(
+                x, y, marker=marks[B], label=f"N={N}, B={B}: slope {fit_slope(x, y):.2f}"
+            )
+            if B == Bs[-1]:
+                d = next(data[N, K, B][1] for K in Ks if (N, K, B) in data)
+                axes[0].loglog(x, 1e3 * x * d**3 / flops, "--", color=ln.get_color(), lw=0.8)
+    for K in Ks:
+        for B in Bs:
+            pts = [(data[N, K, B][1], data[N, K, B][0]) for N in Ns if (N, K, B) in data]
+            if len(pts) < 2:
+                continue
+            x, y = map(np.array, zip(*pts, strict=True))
+            (ln,) = axes[1].loglog(
+                x, y, marker=marks[B], label=f"K={K}, B={B}: slope {fit_slope(x, y):.2f}"
+            )
+            if B == Bs[-1]:
+                axes[1].loglog(x, 1e3 * K * x**3 / flops, "--", color=ln.get_color(), lw=0.8)
+    axes[0].set_xlabel("horizon K")
+    axes[1].set_xlabel("stage size d = nz + m")
+    ds = sorted({v[1] for v in data.values()})
+    for ax, ticks in ((axes[0], Ks), (axes[1], ds)):
+        ax.set_xticks(ticks)
+        ax.set_xticks([], minor=True)
+        ax.set_xticklabels([str(t) for t in ticks])
+    for ax in axes:
+        ax.set_ylabel(f"{path}: CPU ms per problem and LM step")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(
+        f"One LM step ({path}), crossing game; dashed: K d^3 FLOP at {flops:.0e} FLOP/s "
+        f"(batch {Bs[-1]})",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+
+
+def table(rows, paths, threads, wall=True):
     label = "wall-clock" if wall else "process CPU time (all threads)"
     names = {"dense-thr": f"dense-thr ({threads})"}
-    head = ["N", "n_u", "B"] + [f"{names.get(p, p)} ms" for p in paths]
+    head = ["N", "K", "n_u", "B"] + [f"{names.get(p, p)} ms" for p in paths]
     if "numpy" in paths:
         head += [f"{p} x ref" for p in paths if p != "numpy"]
     pairs = [
@@ -268,18 +399,20 @@ def table(rows, paths, threads, K, wall=True):
     head += [f"{f} x {s}" for f, s in pairs]
     head.append("max rel diff")
     out = [
-        f"Median {label} per LM step per problem, K = {K}:",
+        f"Median {label} per LM step per problem:",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join("---:" for _ in head) + "|",
     ]
-    for N, n_u, B, cells, err in rows:
+    for N, n_u, B, cells, err, K, _ in rows:
         i = 0 if wall else 1
         vals = [f"{cells[p][i]:.4f}{'*' if cells[p][2] else ''}" for p in paths]
         if "numpy" in paths:
             vals += [f"{cells['numpy'][i] / cells[p][i]:.2f}" for p in paths if p != "numpy"]
         vals += [f"{cells[s][i] / cells[f][i]:.2f}" for f, s in pairs]
-        out.append("| " + " | ".join([str(N), str(n_u), str(B)] + vals + [f"{err:.1e}"]) + " |")
+        out.append(
+            "| " + " | ".join([str(N), str(K), str(n_u), str(B)] + vals + [f"{err:.1e}"]) + " |"
+        )
     return "\n".join(out)
 
 

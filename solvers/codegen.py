@@ -15,6 +15,10 @@ Cache
     Files are written under a temporary name and renamed, so two processes compiling the
     same functions at once do not read a half-written library.
 
+:func:`compile_libraries` does the same for several libraries at once, running their
+compilers in parallel (one process per library, at most one per usable core): the fused
+Gauss-Newton backend compiles its linearization, solve and energy that way.
+
 Keep what you compile small: residuals, partial Jacobians, stage functions. Compile time
 grows faster than linearly with the size of the expression graph: a symbolic dense ``J'J``
 of a 160-control game took minutes, the structured backend's functions
@@ -26,6 +30,7 @@ is about as fast as CasADi's interpreter, so for large games compiling buys litt
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -45,6 +50,7 @@ __all__ = [
     "CompilerError",
     "cache_dir",
     "compile_functions",
+    "compile_libraries",
     "find_compiler",
 ]
 
@@ -109,7 +115,58 @@ def compile_functions(
     name to its compiled ``casadi.external`` counterpart. Function names must be unique.
     See the module docstring for the cache and ``optimize``.
     """
-    funcs = list(funcs)
+    return compile_libraries([(funcs, name)], directory, optimize=optimize)[0]
+
+
+def compile_libraries(
+    libraries: Sequence[tuple[list[ca.Function], str]],
+    directory: str | os.PathLike | None = None,
+    *,
+    optimize: str = "auto",
+) -> list[dict[str, ca.Function]]:
+    """:func:`compile_functions` for several libraries ``(funcs, name)`` at once: the C code
+    is generated one library after the other, the compilers of the libraries missing from
+    the cache run in parallel (one process each, at most as many as usable cores), then
+    every library is loaded. Returns one name-to-function dict per library, in order."""
+    plans = [_plan(list(funcs), name, directory, optimize) for funcs, name in libraries]
+    todo = [pl for pl in plans if not pl[-1].exists()]
+    if todo:
+        with contextlib.ExitStack() as stack:
+            jobs = [_generate(*pl, stack) for pl in todo]
+            procs: list[subprocess.Popen] = []
+            try:
+                for cmd, _, _ in jobs:
+                    while sum(p.poll() is None for p in procs) >= _usable_cores():
+                        next(p for p in procs if p.poll() is None).wait()
+                    err = stack.enter_context(open(cmd[-2] + ".err", "w+"))  # noqa: SIM115
+                    procs.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err))
+                for (cmd, out, lib), proc in zip(jobs, procs, strict=True):
+                    proc.wait()
+                    if proc.returncode != 0:
+                        err = Path(cmd[-2] + ".err").read_text(errors="replace")
+                        raise CompilerError(
+                            f"compiling {Path(cmd[-2]).name} failed ({' '.join(cmd)}):\n"
+                            f"{err[-2000:]}"
+                        )
+                    os.replace(out, lib)  # atomic: readers see the old or the whole library
+            finally:
+                for p in procs:
+                    if p.poll() is None:
+                        p.kill()
+                        p.wait()
+    return [{n: ca.external(n, str(pl[-1])) for n in pl[1]} for pl in plans]
+
+
+def _usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _plan(funcs, name, directory, optimize):
+    """Checks, flags and the cache path of one library: ``(funcs, names, name, cc, flags,
+    lib)``."""
     if not funcs:
         raise SpecError("funcs", "expected at least one casadi.Function")
     for f in funcs:
@@ -131,26 +188,20 @@ def compile_functions(
         h.update(b"\0")
     folder = cache_dir(directory)
     lib = folder / f"{name}_{h.hexdigest()[:20]}.so"
-    if not lib.exists():
-        _build(funcs, name, cc, flags, folder, lib)
-    return {n: ca.external(n, str(lib)) for n in names}
+    return funcs, names, name, cc, flags, lib
 
 
-def _build(funcs, name, cc, flags, folder: Path, lib: Path) -> None:
-    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}_") as tmp:
-        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
-        for f in funcs:
-            cg.add(f)
-        cg.generate(tmp + os.sep)
-        src = os.path.join(tmp, f"{name}.c")
-        out = os.path.join(tmp, f"{name}.so")
-        cmd = [cc, *flags, "-o", out, src, "-lm"]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise CompilerError(
-                f"compiling {name}.c failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}"
-            )
-        os.replace(out, lib)  # atomic: readers see the old state or the whole library
+def _generate(funcs, names, name, cc, flags, lib: Path, stack: contextlib.ExitStack):
+    """Write the C file of one library into a temporary folder next to ``lib`` (removed
+    when ``stack`` closes); returns the compiler command, its output file and ``lib``."""
+    tmp = stack.enter_context(tempfile.TemporaryDirectory(dir=lib.parent, prefix=f".{name}_"))
+    cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+    for f in funcs:
+        cg.add(f)
+    cg.generate(tmp + os.sep)
+    src = os.path.join(tmp, f"{name}.c")
+    out = os.path.join(tmp, f"{name}.so")
+    return [cc, *flags, "-o", out, src, "-lm"], out, lib
 
 
 class BufferCall:

@@ -27,26 +27,39 @@ and mapped over the batch (:class:`solvers.batch.BatchFunction`, ``map`` with th
     (ellipsoidal damping and :func:`solvers.lm.residual_cosine` only).
 
 The trial energy is the game's ``energy`` function. With ``compiled=True`` the functions
-are generated C (:func:`solvers.codegen.compile_functions`, one library per function,
-cached on disk by a hash of their serialization, i.e. by the game's structure, never by
-parameter values: ``p`` is an input). For C, ``fused_solve`` and ``fused_sweep`` take a
-staged form with the same arithmetic: ``K`` calls of one small SX function per stage
+are generated C (:func:`solvers.codegen.compile_libraries`, one library per function,
+compiled in parallel, cached on disk by a hash of their serialization, i.e. by the game's
+structure, never by parameter values: ``p`` is an input; ``fused_sweep`` and
+``fused_diag`` are compiled when first used). For C, ``fused_solve`` and ``fused_sweep``
+take a staged form with the same arithmetic: ``K`` calls of one small SX function per stage
 (Riccati step, backward sweep, forward sweep; stage blocks are exchanged in one pattern
-for all stages), which compiles at ``-O1`` in a fraction of the time of the unrolled graph
-(N = 2, K = 40: 4.9 s of compiler CPU instead of 13.4; N = 4: 11.6 s instead of 35 at
-``-O0``), while the interpreter runs the unrolled graph, where each call would cost a
-microsecond. Steps equal the interpreted structured and dense backends up to rounding (the
-Riccati solve uses a Cholesky factor where :class:`StructuredGN` inverts; tested to 1e-12).
+for all stages), which compiles at ``-O1`` in a fraction of the time of the unrolled graph,
+while the interpreter runs the unrolled graph, where each call would cost a microsecond.
+When the stage functions below have more than :data:`STAGED_MIN_INSTRUCTIONS` SX
+instructions in all (three or more unicycles at K = 40, two from K = 47; the left-turn
+game, with lanes: 188k in one graph), ``fused_linearize`` and ``energy`` are staged: each
+stage's outputs (its residual rows, ``H_k``, ``c_k``, ``FG_k``) become one SX function of
+the window of stages they depend on, stages with the same function form a group mapped over
+its stages (three groups for the crossing and left-turn games: first, middle, terminal),
+the rollout is the game's and ``J'r`` is the adjoint sweep as ``K`` calls of one stage
+function (:func:`_staged_linearize`). Compiler CPU for N = 4, K = 40: 13.5 s with the
+one-graph linearization, 3.5 s staged (2.9 s before the sweep and diag libraries are
+needed), at a cost of about 5 % in the step; the two-unicycle RPI game keeps the one graph
+(5 s, 1.16x faster than staged in a batch). Steps equal the interpreted structured and
+dense backends up to rounding (the Riccati solve uses a Cholesky factor where
+:class:`StructuredGN` inverts; tested to 1e-12); the staged linearization gives the
+one-graph numbers bit for bit (the same SX operations per stage).
 
 Cost
     The unrolled graph grows with ``K (nz + m)^3`` scalar instructions; CasADi's SX virtual
     machine runs about 3 ns per instruction, generated C at ``-O1`` about 0.4 ns. Measured
     (``bench/bench_lm.py``, crossing game, K = 40, CPU per problem and step): generated C
-    is 4.5x (two agents) and 3.5x (four) faster than :class:`StructuredGN` with generated C
-    in a batch of 64, 12x and 6x for one problem; interpreted it is 2 to 5x faster for one
-    problem and 20 to 25 % slower in a batch of 64 (numpy amortizes its per-stage calls over
-    the batch, the SX interpreter does not); for eight agents (generated C only) 2.4x in a
-    batch and 2.7x for one problem. Above :data:`MAX_STAGE_SIZE` (interpreted) or
+    is 4.5x (two agents), 3.5x (four), 3.2x (eight) and 2.7x (twelve) faster than
+    :class:`StructuredGN` with generated C in a batch of 64, 12x, 6x, 4x and 2.6x for one
+    problem; interpreted it is 2 to 5x faster for one problem and 20 to 25 % slower in a
+    batch of 64 (numpy amortizes its per-stage calls over the batch, the SX interpreter
+    does not). At twelve agents (d = 72) the Riccati stage function alone has 101k
+    instructions, 1.2 of the 1.6 ms of a step. Above :data:`MAX_STAGE_SIZE` (interpreted) or
     :data:`MAX_STAGE_SIZE_COMPILED` (generated C), or when :class:`StructuredGN` itself
     falls back to the dense solve (short horizons, rows coupling many stages), the backend
     delegates to :class:`StructuredGN` and says why in :attr:`FusedGN.fallback`.
@@ -77,7 +90,14 @@ from .structured import (
     stage_layout,
 )
 
-__all__ = ["MAX_STAGE_SIZE", "MAX_STAGE_SIZE_COMPILED", "FusedGN", "FusedLinearization"]
+__all__ = [
+    "MAX_STAGE_GROUPS",
+    "MAX_STAGE_SIZE",
+    "MAX_STAGE_SIZE_COMPILED",
+    "STAGED_MIN_INSTRUCTIONS",
+    "FusedGN",
+    "FusedLinearization",
+]
 
 #: Largest stage size ``d = nz + m`` (augmented state + joint controls) the fused backend
 #: builds (4 unicycles: 24, the largest measured). The unrolled graphs it builds for the
@@ -86,9 +106,20 @@ __all__ = ["MAX_STAGE_SIZE", "MAX_STAGE_SIZE_COMPILED", "FusedGN", "FusedLineari
 #: to :class:`StructuredGN`.
 MAX_STAGE_SIZE = 24
 #: The same limit with ``compiled=True``, where only the staged graphs are built (one SX
-#: function per stage; 32k instructions for the Riccati step at d = 48, 8 unicycles, the
-#: largest measured).
-MAX_STAGE_SIZE_COMPILED = 48
+#: function per stage): 12 unicycles (d = 72), the largest measured, whose Riccati step
+#: (101k instructions) takes 10 s of compiler CPU at ``-O1`` (d = 48: 32k instructions).
+MAX_STAGE_SIZE_COMPILED = 72
+#: The compiled backend uses the staged linearization when its stage functions have more
+#: SX instructions than this, summed over the stages (about 0.89 of the one-graph
+#: ``fused_linearize``, which is then not built). The one graph's compile time grows about
+#: 0.3 ms per instruction (four unicycles, K = 20: 14.4k staged, 16k in one graph, 5.3 s
+#: of compiler CPU for the libraries; staged 1.9 s), while the two-unicycle RPI game
+#: (K = 40: 10.9k staged, 12.3k in one graph) keeps the one graph, 1.16x faster per step in
+#: a batch of 64 and compiled in 5 s.
+STAGED_MIN_INSTRUCTIONS = 12_500
+#: Largest number of distinct stage functions of the staged linearization (compile time
+#: grows with it); a game with more falls back to the one-graph ``fused_linearize``.
+MAX_STAGE_GROUPS = 12
 
 
 @dataclass
@@ -162,30 +193,62 @@ class FusedGN:
             self._u_index = getattr(self.delegate, "_u_index", None)
             return
         self._u_index = _joint_u_index(game, L)
-        f_lin = self._build_linearize(x, u, p, r, Jr)
         f_energy = game.function("energy")
+        #: distinct stage functions of the staged linearization (0: the one-graph function)
+        self.stage_groups = 0
+        staged = self.compiled and self._build_linearize(x, u, p, r, Jr, staged=True)
+        if staged and staged[3] > STAGED_MIN_INSTRUCTIONS:
+            f_lin, f_energy, self.stage_groups = staged[:3]
+        else:
+            f_lin = self._build_linearize(x, u, p, r, Jr)
+        self._cache_dir = cache_dir
+        self._later: dict[str, ca.Function] = {}
         if self.compiled:
             # staged graphs only (the unrolled ones grow like K d^3 and are not needed)
             f_solve, f_sweep, f_diag = self._build_solve_staged()
-            from .codegen import compile_functions
+            from .codegen import compile_libraries
 
-            # one library per function: compile_functions picks -O1 or -O0 by size, and
-            # each of these stays under the -O1 limit where their sum would not
-            fs = [f_lin, f_solve, f_sweep, f_diag, f_energy]
-            f_lin, f_solve, f_sweep, f_diag, f_energy = (
-                compile_functions([f], f"epo_{f.name()}_n{game.N}_k{game.K}", cache_dir)[f.name()]
-                for f in fs
-            )
+            # one library per function (compile_functions picks -O1 or -O0 by each one's
+            # size), compiled in parallel; fused_sweep (the layer's backward pass) and
+            # fused_diag (ellipsoidal damping) only when first used
+            tag = f"n{game.N}_k{game.K}"
+            fs = [f_lin, f_solve, f_energy]
+            libs = compile_libraries([([f], f"epo_{f.name()}_{tag}") for f in fs], cache_dir)
+            f_lin, f_solve, f_energy = (lib[f.name()] for lib, f in zip(libs, fs, strict=True))
+            self._later = {"sweep": f_sweep, "diag": f_diag}
         else:
             f_solve, f_sweep, f_diag = self._build_solve()
+            self._sweep_fn = BatchFunction(f_sweep, threads)
+            self._diag_fn = BatchFunction(f_diag, threads)
         self._lin = BatchFunction(f_lin, threads)
         self._solve = BatchFunction(f_solve, threads)
-        self._sweep = BatchFunction(f_sweep, threads)
-        self._diag = BatchFunction(f_diag, threads)
         self._energy = BatchFunction(f_energy, threads)
 
+    def _compiled_later(self, key: str) -> BatchFunction:
+        """``fused_sweep`` or ``fused_diag`` as generated C, compiled (or loaded from the
+        cache) on first use."""
+        from .codegen import compile_functions
+
+        f = self._later[key]
+        lib = compile_functions(
+            [f], f"epo_{f.name()}_n{self.game.N}_k{self.game.K}", self._cache_dir
+        )
+        return BatchFunction(lib[f.name()], self.threads)
+
+    @property
+    def _sweep(self) -> BatchFunction:
+        if getattr(self, "_sweep_fn", None) is None:
+            self._sweep_fn = self._compiled_later("sweep")
+        return self._sweep_fn
+
+    @property
+    def _diag(self) -> BatchFunction:
+        if getattr(self, "_diag_fn", None) is None:
+            self._diag_fn = self._compiled_later("diag")
+        return self._diag_fn
+
     # ---- symbolic -------------------------------------------------------------------
-    def _build_linearize(self, x, u, p, r, Jr) -> ca.Function:
+    def _build_linearize(self, x, u, p, r, Jr, staged: bool = False):
         g, L = self.game, self.layout
         K, nz, d = L.K, L.nz, L.d
         kind, stage, comp, _ = _var_columns(g)
@@ -269,6 +332,26 @@ class FusedGN:
             gk[k] = cs[k][nz:] + v[nz:]
             lam = cs[k][:nz] + v[:nz]
         grad = ca.vertcat(*gk)[self._game_order().tolist()]
+        if staged:
+            # per stage: its residual rows, tril(H_k) in its pattern, c_k and FG_k's nonzeros
+            row_k = np.maximum(L.row_stage, 0)
+            parts = []
+            for k in range(K + 1):
+                rk = np.flatnonzero(row_k == k)
+                pk = [ca.densify(r[rk.tolist()]) if rk.size else ca.SX(0, 1)]
+                if k < K:
+                    pk += [
+                        ca.densify(ca.project(ca.tril(Hs[k]), spHu).nz[:]),
+                        ca.densify(cs[k]),
+                        ca.densify(proj[k].nz[var]) if var else ca.SX(0, 1),
+                    ]
+                else:
+                    pk += [
+                        ca.densify(ca.tril(Hs[K][:nz, :nz]).nz[:]) if spHK.nnz() else ca.SX(0, 1),
+                        ca.densify(cs[K][:nz]),
+                    ]
+                parts.append((rk, pk))
+            return _staged_linearize(self, x, u, p, parts)
         outs = [
             ca.densify(r),
             0.5 * ca.sumsqr(r),
@@ -594,3 +677,132 @@ def _cholesky(A: ca.SX) -> ca.SX:
         for i in range(j, n):
             C[i, j] = Lf[i][j]
     return C
+
+
+def _staged_linearize(be: FusedGN, x, u, p, parts):
+    """``fused_linearize`` and ``energy`` as MX graphs of mapped stage functions, or ``None``.
+
+    ``parts[k] = (rows_k, [r_k, H_k, c_k, FG_k])``: stage ``k``'s residual rows and its
+    outputs as SX expressions of the whole trajectory. Each stage's outputs become a
+    function of the window of stages they depend on (``z_j = (x_j, u_j)``, ``p`` shared);
+    stages whose functions serialize identically form one group, mapped over its stages
+    (a loop in C). The rollout is the game's, ``E = 1/2 |r|^2`` in the game's row order and
+    ``J'r`` by the adjoint sweep as ``K`` calls of one stage function: the arithmetic of
+    the one-graph function, operation for operation, so the numbers agree to rounding.
+    """
+    g, L = be.game, be.layout
+    K, nz, d = L.K, L.nz, L.d
+    # stage of every entry of z = [x; u] (game order, agent-major)
+    zst = np.zeros(g.n_x + g.n_u, dtype=int)
+    for i in range(g.N):
+        nx, nu = g.nx[i], g.nu[i]
+        xo = int(g.xoff[i])
+        zst[xo : xo + (K + 1) * nx] = np.arange((K + 1) * nx) // nx
+        uo = g.n_x + int(g.uoff[i])
+        zst[uo : uo + K * nu] = np.arange(K * nu) // nu
+    z = ca.vertcat(x, u)
+    outs = [ca.vertcat(*pk) for _, pk in parts]
+    allout = ca.vertcat(*outs)
+    rows, cols = (np.asarray(a, dtype=int) for a in ca.jacobian_sparsity(allout, z).get_triplet())
+    lo = np.full(allout.shape[0], K + 1)
+    hi = np.full(allout.shape[0], -1)
+    np.minimum.at(lo, rows, zst[cols])
+    np.maximum.at(hi, rows, zst[cols])
+    sizes = [[int(e.shape[0]) for e in pk] for _, pk in parts]
+    groups: dict = {}
+    off = 0
+    for k, e in enumerate(outs):
+        ne = int(e.shape[0])
+        a = int(lo[off : off + ne].min(initial=k))
+        b = int(hi[off : off + ne].max(initial=k))
+        off += ne
+        a, b = min(a, k), max(b, k)
+        win = np.flatnonzero((zst >= a) & (zst <= b))
+        win = win[np.lexsort((win, zst[win]))]
+        w_s, p_s = ca.SX.sym("w", win.size), ca.SX.sym("p", g.n_p)
+        try:
+            f = ca.Function("s", [z[win.tolist()], p], [e])
+        except RuntimeError:  # depends on a stage outside its window (not by derivative)
+            return None
+        e_s = ca.cse(f.call([w_s, p_s])[0])
+        f = ca.Function("s", [w_s, p_s], [e_s])
+        key = (f.serialize(), tuple(sizes[k]))
+        grp = groups.get(key)
+        if grp is None:
+            if len(groups) >= MAX_STAGE_GROUPS:
+                return None
+            grp = groups[key] = {"w": w_s, "p": p_s, "e": e_s, "ks": [], "wins": []}
+            grp["n"] = f.n_instructions()
+        grp["ks"].append(k)
+        grp["wins"].append(win)
+    # MX graph: rollout, windows, mapped groups, then index maps into the outputs
+    U, P = ca.MX.sym("u", g.n_u), ca.MX.sym("p", g.n_p)
+    Z = ca.vertcat(g.function("rollout")(U, P), U)
+    blocks_lin, blocks_r = [], []
+    where = [None] * (K + 1)  # stage k -> (group's flat offset, member j, e length)
+    base_lin = base_r = 0
+    for gi, grp in enumerate(groups.values()):
+        ks, wins = grp["ks"], np.stack(grp["wins"])
+        m, w = wins.shape
+        ne = int(grp["e"].shape[0])
+        nr = sizes[ks[0]][0]
+        f = ca.Function(f"fused_lin_stage{gi}", [grp["w"], grp["p"]], [grp["e"]])
+        fr = ca.Function(f"fused_res_stage{gi}", [grp["w"], grp["p"]], [grp["e"][:nr]])
+        Wz = ca.reshape(Z[wins.reshape(-1).tolist()], w, m)
+        blocks_lin.append(ca.vec(f.map(f"fused_lin_map{gi}", "serial", m, [1], [])(Wz, P)))
+        if nr:
+            blocks_r.append(ca.vec(fr.map(f"fused_res_map{gi}", "serial", m, [1], [])(Wz, P)))
+        for j, k in enumerate(ks):
+            where[k] = (base_lin + j * ne, base_r + j * nr)
+        base_lin += m * ne
+        base_r += m * nr
+    V = ca.vertcat(*blocks_lin)
+    R = ca.vertcat(*blocks_r) if blocks_r else ca.MX(0, 1)
+    n_r = g.n_r
+    r_lin, r_res = np.empty(n_r, dtype=int), np.empty(n_r, dtype=int)
+    H_idx, c_idx, F_idx = [], [], []
+    for k, (rk, _) in enumerate(parts):
+        o, orr = where[k]
+        sz = sizes[k]
+        r_lin[rk] = o + np.arange(sz[0])
+        r_res[rk] = orr + np.arange(sz[0])
+        o += sz[0]
+        H_idx.append(o + np.arange(sz[1]))
+        o += sz[1]
+        c_idx.append(o + np.arange(sz[2]))
+        o += sz[2]
+        if k < K:
+            F_idx.append(o + np.arange(sz[3]))
+
+    def take(vec, idx):
+        idx = np.concatenate(idx) if isinstance(idx, list) else idx
+        return vec[idx.tolist()] if idx.size else ca.MX(0, 1)
+
+    r = take(V, r_lin)
+    H = take(V, H_idx)
+    FGv = take(V, F_idx)
+    # J'r by the adjoint sweep: lam_K = c_K; g_k = c_k,u + G_k' lam; lam_k = c_k,z + F_k' lam
+    nFv = be._sizes()[2]
+    lam_s, c_s, F_s = ca.SX.sym("lam", nz), ca.SX.sym("c", d), ca.SX.sym("FG", nFv)
+    v = ca.mtimes(be._stage_FG(F_s).T, lam_s)
+    f_adj = ca.Function(
+        "fused_adjoint_stage",
+        [lam_s, c_s, F_s],
+        [ca.densify(c_s[:nz] + v[:nz]), ca.densify(c_s[nz:] + v[nz:])],
+    )
+    lam = take(V, c_idx[K])
+    gk = [None] * K
+    for k in range(K - 1, -1, -1):
+        lam, gk[k] = f_adj(lam, take(V, c_idx[k]), FGv[k * nFv : (k + 1) * nFv])
+    grad = ca.vertcat(*gk)[be._game_order().tolist()]
+    f_lin = ca.Function(
+        "fused_linearize",
+        [U, P],
+        [r, 0.5 * ca.sumsqr(r), grad, H, FGv],
+        ["u", "p"],
+        ["r", "E", "g", "H", "FG"],
+    )
+    rr = take(R, r_res)
+    f_energy = ca.Function("energy", [U, P], [0.5 * ca.sumsqr(rr)], ["u", "p"], ["E"])
+    n_instr = sum(grp["n"] * len(grp["ks"]) for grp in groups.values())
+    return f_lin, f_energy, len(groups), n_instr

@@ -63,6 +63,7 @@ def test_cache_is_reused_and_keyed_by_content(small_game, tmp_path, monkeypatch)
         raise AssertionError("compiled again although the library is cached")
 
     monkeypatch.setattr(subprocess, "run", no_compiler)
+    monkeypatch.setattr(subprocess, "Popen", no_compiler)
     again = compile_functions([f], "epo_test_cache", tmp_path)["energy"]
     assert libs[0].stat().st_mtime_ns == mtime
     U, P = _random_inputs(small_game, B=1)
@@ -86,6 +87,38 @@ def test_missing_compiler_is_a_clear_error(small_game, tmp_path, monkeypatch):
         find_compiler()
     with pytest.raises(CompilerError, match="compiled=False"):
         compile_functions([small_game.function("energy")], "epo_test_nocc", tmp_path)
+
+
+def test_libraries_compile_in_parallel(small_game, tmp_path, monkeypatch):
+    """compile_libraries runs one compiler per missing library, at most as many at once as
+    usable cores, loads each library and reports a failing compile naming its file."""
+    names = ["residual", "energy", "rollout"]
+    libs = [([small_game.function(n)], f"epo_test_par_{n}") for n in names]
+    running, peak = [], [0]
+    popen = subprocess.Popen
+
+    class Counting(popen):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            running.append(self)
+            peak[0] = max(peak[0], sum(p.poll() is None for p in running))
+
+    monkeypatch.setattr(subprocess, "Popen", Counting)
+    monkeypatch.setattr(codegen, "_usable_cores", lambda: 2)
+    out = codegen.compile_libraries(libs, tmp_path)
+    assert len(running) == 3 and 1 <= peak[0] <= 2
+    U, P = _random_inputs(small_game, B=2)
+    for n, lib in zip(names, out, strict=True):
+        f = small_game.function(n)
+        ref, got = BatchFunction(f, 1)(U, P)[0], BatchFunction(lib[n], 1)(U, P)[0]
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * np.max(np.abs(ref)))
+    assert len(list(tmp_path.glob("epo_test_par_*.so"))) == 3
+    codegen.compile_libraries(libs, tmp_path)  # cached: no compiler runs
+    assert len(running) == 3
+    monkeypatch.setattr(codegen, "_flags", lambda funcs, optimize: ["-fno-such-flag-xyz"])
+    with pytest.raises(CompilerError, match=r"compiling epo_test_bad\.c failed"):
+        codegen.compile_libraries([([small_game.function("energy")], "epo_test_bad")], tmp_path)
+    assert not list(tmp_path.glob("epo_test_bad*.so"))
 
 
 def test_bad_arguments(small_game, tmp_path):

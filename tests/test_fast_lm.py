@@ -218,15 +218,48 @@ def test_compiled_equals_interpreted(tmp_path, name):
     assert fi.fallback is None
     assert (name == "double_integrator") == (fi._sizes()[2] == 0)
     fc = FusedGN(game, threads=1, compiled=True, cache_dir=str(tmp_path))
-    assert len(list(tmp_path.glob("epo_*.so"))) == 5  # one library per function
+    assert fc.stage_groups == 0  # small: the one-graph linearization
+    libs = lambda: sorted(f.name.rsplit("_", 1)[0] for f in tmp_path.glob("epo_*.so"))  # noqa: E731
+    # one library per function; the sweep and diag(J'J) only when first needed
+    assert libs() == [f"epo_{f}_n2_k{game.K}" for f in ("energy", "fused_linearize", "fused_solve")]
     U, P, lam = _batch(game, B=3, seed=8)
     li, lc = fi.linearize(U, P), fc.linearize(U, P)
     _close(lc.gradient, li.gradient)
     _close(fc.solve(lc, lam, -lc.gradient), fi.solve(li, lam, -li.gradient))
     rhs = np.random.default_rng(9).normal(size=U.shape)  # on the kept factorization
     _close(fc.solve(lc, lam, rhs), fi.solve(li, lam, rhs))
+    assert len(libs()) == 4 and "fused_sweep" in libs()[3]
     _close(fc.solve(lc, lam, rhs, True), fi.solve(li, lam, rhs, True))
+    assert len(libs()) == 5
     _close(fc.energy(U, P), fi.energy(U, P))
+
+
+@pytest.mark.skipif(
+    not any(shutil.which(c) for c in ("gcc", "cc", "clang")), reason="no C compiler"
+)
+@pytest.mark.parametrize("name", ["head_on", "unicycle_jerk_turn_acc", "second_difference"])
+def test_staged_linearization_equals_the_one_graph(tmp_path, monkeypatch, name):
+    """The staged linearization (stage functions mapped over groups of equal stages, the
+    form compiled for larger games) against the interpreted one-graph function; the
+    threshold is lowered so that small games take it. Lags of one and two stages give
+    windows of two and three stages and several groups."""
+    import solvers.fast_gn as fast_gn
+
+    game = PotentialGame(head_on_spec(K=8)) if name == "head_on" else GAMES[name]()
+    fi = FusedGN(game, threads=1)
+    monkeypatch.setattr(fast_gn, "STAGED_MIN_INSTRUCTIONS", 0)
+    fc = FusedGN(game, threads=1, compiled=True, cache_dir=str(tmp_path))
+    assert 3 <= fc.stage_groups <= fast_gn.MAX_STAGE_GROUPS
+    U, P, lam = _batch(game, B=3, seed=11)
+    li, lc = fi.linearize(U, P), fc.linearize(U, P)
+    for field in ("r", "energy", "gradient", "H", "FG"):
+        _close(getattr(lc, field), getattr(li, field))
+    _close(fc.energy(U, P), fi.energy(U, P))
+    _close(fc.solve(lc, lam, -lc.gradient), fi.solve(li, lam, -li.gradient))
+    monkeypatch.setattr(fast_gn, "MAX_STAGE_GROUPS", 1)  # too many groups: the one graph
+    fo = FusedGN(game, threads=1, compiled=True, cache_dir=str(tmp_path))
+    assert fo.stage_groups == 0
+    _close(fo.linearize(U, P).gradient, li.gradient)
 
 
 @pytest.mark.skipif(
