@@ -102,6 +102,7 @@ __all__ = [
     "BACKWARD_MODES",
     "STATUS_CODES",
     "GameLayer",
+    "MAX_COMPILED_INSTRUCTIONS",
     "GameLayerFunction",
     "LayerOutput",
     "decode_status",
@@ -190,6 +191,13 @@ def layer_functions(game: PotentialGame, name: str) -> ca.Function:
 # --------------------------------------------------------------------------------------
 # The numeric core (numpy, float64)
 # --------------------------------------------------------------------------------------
+#: with ``compiled=True`` the layer's functions above this many CasADi instructions stay
+#: interpreted (:attr:`GameLayer.interpreted` names them): measured, the RPI game's VJP
+#: (28k) compiles in seconds, the exiD game's (342k, N = 4, K = 20) in about a minute at
+#: -O0, and the left-turn game's (666k) was killed for memory on this 2-core machine
+MAX_COMPILED_INSTRUCTIONS = 400_000
+
+
 class _Core:
     """Options, backend and batched functions of one layer; numpy in, numpy out."""
 
@@ -201,6 +209,7 @@ class _Core:
         self.backward = backward
         self.on_invalid = on_invalid
         self.backend = backend if backend is not None else make_backend(game, options)
+        self.interpreted: list[str] = []
         t = options.threads
         # the forward rollout stays interpreted so that outputs equal solve_lm's bit for bit
         self.rollout = BatchFunction(game.function("rollout"), t)
@@ -213,9 +222,21 @@ class _Core:
         if compiled:
             from solvers.codegen import compile_functions
 
-            fns = compile_functions(
-                list(fns.values()), f"epo_layer_{backward}_n{game.N}_k{game.K}", cache_dir
-            )
+            # a monolithic VJP of a large game (e.g. 666k instructions for the left-turn
+            # game, K = 60 with path terms) takes the compiler minutes and gigabytes: such
+            # functions stay interpreted, the others are compiled
+            small = {
+                n: f for n, f in fns.items() if f.n_instructions() <= MAX_COMPILED_INSTRUCTIONS
+            }
+            self.interpreted = sorted(set(fns) - set(small))
+            if small:
+                fns.update(
+                    compile_functions(
+                        list(small.values()),
+                        f"epo_layer_{backward}_n{game.N}_k{game.K}",
+                        cache_dir,
+                    )
+                )
         self.rollout_vjp = BatchFunction(fns["rollout_vjp"], t)
         if backward == "unrolled":
             self.step_vjp = BatchFunction(fns["lm_step_vjp"], t)
@@ -486,7 +507,8 @@ class GameLayer(nn.Module):
     compiled: evaluate the backward pass's CasADi functions as generated C
         (:func:`solvers.codegen.compile_functions`, compiled once and cached on disk in
         ``cache_dir``; needs a C compiler). Values are unchanged up to rounding; the
-        forward rollout always stays interpreted.
+        forward rollout always stays interpreted, and so does any function above
+        :data:`MAX_COMPILED_INSTRUCTIONS` (named in :attr:`interpreted`).
     """
 
     def __init__(
@@ -533,6 +555,8 @@ class GameLayer(nn.Module):
         self.on_invalid = on_invalid
         self.compiled = bool(compiled)
         self.core = _Core(game, options, backward, on_invalid, backend, self.compiled, cache_dir)
+        #: the backward-pass functions left interpreted despite ``compiled`` (too large)
+        self.interpreted: list[str] = list(self.core.interpreted)
 
     def extra_repr(self) -> str:
         o = self.options

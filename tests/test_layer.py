@@ -625,3 +625,40 @@ def test_documented_defaults(game):
     assert layer.backward == "unrolled" and layer.options == LMOptions.paper()
     assert layer.on_invalid == "raise" and layer.compiled is False
     assert GameLayer(game, backward="implicit").options == LMOptions()
+
+
+def test_compiled_layer_leaves_large_functions_interpreted(game8, monkeypatch):
+    """With ``compiled=True`` the functions above MAX_COMPILED_INSTRUCTIONS stay
+    interpreted (named in ``layer.interpreted``); outputs and gradients equal the fully
+    interpreted layer's bit for bit, and those of the fully compiled one to rounding."""
+    pytest.importorskip("solvers.codegen").find_compiler()
+    import learning.layer as L
+
+    rng = np.random.default_rng(3)
+    p0 = torch.as_tensor(game8.params.defaults())
+    u0 = torch.as_tensor(rng.normal(scale=0.1, size=(2, game8.n_u)))
+
+    def run(layer):
+        p = p0.expand(2, -1).clone().requires_grad_(True)
+        u = u0.clone().requires_grad_(True)
+        out = layer(p, u)
+        (out.states.square().mean() + out.controls.square().mean()).backward()
+        return [t.detach().numpy() for t in (out.controls, out.states, p.grad, u.grad)]
+
+    plain = run(GameLayer(game8))
+    full = GameLayer(game8, compiled=True)
+    assert full.interpreted == []
+    sizes = {n: layer_functions(game8, n).n_instructions() for n in ("lm_step_vjp", "rollout_vjp")}
+    monkeypatch.setattr(
+        L, "MAX_COMPILED_INSTRUCTIONS", (sizes["rollout_vjp"] + sizes["lm_step_vjp"]) // 2
+    )
+    assert sizes["rollout_vjp"] < sizes["lm_step_vjp"]
+    part = GameLayer(game8, compiled=True)
+    assert part.interpreted == ["lm_step_vjp"]
+    monkeypatch.setattr(L, "MAX_COMPILED_INSTRUCTIONS", 0)
+    none = GameLayer(game8, compiled=True)
+    assert none.interpreted == ["lm_step_vjp", "rollout_vjp"]
+    for a, b in zip(run(none), plain, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(run(part), run(full), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
