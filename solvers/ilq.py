@@ -59,6 +59,13 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
        extra). The merit is the feedback-Nash residual, valid for general-sum costs; the
        potential is not a merit here (a feedback equilibrium does not minimize it).
 
+    After the first failed line search two safeguards switch on (the fast path is untouched
+    until then): the first trial ``eps`` comes from a secant on ``a`` (:func:`_secant_step`),
+    and, when the residual has kinks (``max``/``min``: collision, bounds), their curvature
+    is blended over the widths ``kink_widths`` in turn (:func:`_smooth_kinks`; the gains
+    switch at a kink, so ``a`` and the merit jump there), each width after the previous one
+    converged, then the exact kinks again, where convergence is judged (docs/ilq.md).
+
     The iteration stops when ``max |a| <= tol`` at the requested regularization (status
     ``CONVERGED``; ``STALLED`` when no step passes the line search up to the regularization
     cap or the tolerance holds only with raised regularization; ``info['stop']``): the feed-forward
@@ -171,6 +178,10 @@ class ILQOptions:
     max_state_step: float = math.inf  #: trust region: largest |X_new - X| (elementwise) accepted
     regularization: float = 0.0  #: mu0 >= 0 always added to every player's own block H_ii
     min_curvature: float = 1e-8  #: smallest allowed pivot of H_ii before a shift is added
+    adaptive_step: bool = True  #: first trial eps from a secant on a (damps oscillation)
+    #: widths over which the curvature of the residual's kinks (max/min) is blended, used in
+    #: turn after the line search fails at the exact kinks; () never blends (docs/ilq.md)
+    kink_widths: tuple = (1e-2, 1e-3, 1e-4)
     compiled: bool = False  #: per-stage work as generated C (needs a C compiler; cached on disk)
 
     def __post_init__(self):
@@ -198,6 +209,23 @@ class ILQOptions:
         if not math.isfinite(self.min_curvature):
             raise SpecError(
                 "ilq.min_curvature", f"expected a finite number >= 0, got {self.min_curvature!r}"
+            )
+        kw = self.kink_widths
+        if isinstance(kw, (list, tuple)):
+            kw = tuple(kw)
+            object.__setattr__(self, "kink_widths", kw)
+        ok = isinstance(kw, tuple) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in kw
+        )
+        if not ok or any(b >= a for a, b in zip(kw, kw[1:], strict=False)):
+            raise SpecError(
+                "ilq.kink_widths",
+                f"expected a decreasing list of finite numbers > 0, got {self.kink_widths!r}",
+            )
+        if not isinstance(self.adaptive_step, bool):
+            raise SpecError(
+                "ilq.adaptive_step", f"expected True or False, got {self.adaptive_step!r}"
             )
         if not isinstance(self.compiled, bool):
             raise SpecError("ilq.compiled", f"expected True or False, got {self.compiled!r}")
@@ -299,6 +327,52 @@ class ILQSolver:
         self._cquad = None  # solvers.fast_ilq.CompiledQuadratize after compile(), if it applies
         self._croll = None  # solvers.fast_ilq.CompiledRollout after compile()
         self.quad_backend = "interpreted"  #: quadratization used with compiled=True
+        self.kink_width = 0.0  #: blend width of the kinks' curvature in the current solve
+        self._kink_quad = None  # (quadratize, kinks) with blended kinks; False: no kinks
+
+    @property
+    def has_kinks(self) -> bool:
+        """Whether the game's residual has kinks (``max``/``min``) whose curvature the
+        solver can blend (Gauss-Newton only; built on first call)."""
+        if self._kink_quad is None:
+            self._kink_quad = self._build_kink_quad() or False
+        return bool(self._kink_quad)
+
+    def kinks_within(self, X, U, p, width: float) -> int:
+        """Number of kink arguments (``b - a`` of the residual's ``max(a, b)``, ``a - b`` of
+        ``min(a, b)``) within ``width / 2`` of their kink at ``(X, U)``."""
+        if width <= 0 or not self.has_kinks:
+            return 0
+        (zk,) = self._kink_quad[1](X, U, p)
+        return int(np.count_nonzero(np.abs(zk) < 0.5 * width))
+
+    def _build_kink_quad(self):
+        """``(quadratize(X, U, p, w), kinks(X, U, p))`` with the kinks' curvature blended over
+        ``w`` (:func:`_smooth_kinks`), or ``None``. Same outputs as ``ilq_quadratize``: the
+        gradients, costs, energy and dynamics are exact, only the Hessian blocks change (on
+        the exact blocks' sparsity)."""
+        if self.hessian != "gauss_newton":
+            return None
+        smooth = _smooth_kinks(self.game.function("traj_residual"))
+        if smooth is None:
+            return None
+        Xs, Us, p, x_flat, u_flat, z, C, E, grads, player_rows, hess_sel, phi_out = self._blend_sym
+        w = ca.SX.sym("w")
+        rb, zk = smooth(x_flat, u_flat, p, w)
+        outs = []
+        for grad, rows_i, (sp, sel) in zip(grads, player_rows, hess_sel, strict=True):
+            outs.append(ca.densify(grad))
+            if rows_i:
+                J = ca.jacobian(rb[rows_i], z)
+                H = ca.project(ca.mtimes(J.T, J), sp)
+            else:
+                H = ca.SX(sp)
+            outs.append(H.nz[sel.tolist()] if sel.size else ca.SX(0, 1))
+        quad = ca.Function(
+            "ilq_quadratize_kinks", [Xs, Us, p, w], [C, E, ca.vertcat(*outs), phi_out]
+        )
+        kinks = ca.Function("ilq_kinks", [Xs, Us, p], [zk])
+        return _Call(quad), _Call(kinks)
 
     # ---- checks ---------------------------------------------------------------------------
     @staticmethod
@@ -357,7 +431,7 @@ class ILQSolver:
             if self.hessian == "gauss_newton"
             else None
         )
-        grads, hessians = [], []
+        grads, hessians, player_rows = [], [], []
         for i in range(N):
             if self.hessian == "gauss_newton":
                 rows_i = [
@@ -369,6 +443,7 @@ class ILQSolver:
                 ri = r_all[rows_i] if rows_i else ca.SX(0, 1)
                 J = ca.jacobian(ri, z)
                 H, grad = ca.mtimes(J.T, J), ca.mtimes(J.T, ri)
+                player_rows.append(rows_i)
             else:
                 H, grad = ca.hessian(C[i], z)
             rows, cols = (np.asarray(v, dtype=int) for v in H.sparsity().get_triplet())
@@ -389,7 +464,7 @@ class ILQSolver:
         ypos = np.full(nu + nx, -1)
         ypos[prev] = nu + nx + np.arange(self.na)
         n_stage = K * N * n * n
-        outs, src, tgt = [], [], []
+        outs, src, tgt, hess_sel = [], [], [], []
         off = 0
         self.dropped_cross_stage = 0
         for i, (grad, (H, rows, cols)) in enumerate(zip(grads, hessians, strict=True)):
@@ -404,6 +479,7 @@ class ILQSolver:
             d = stage_of[rows] - stage_of[cols]
             sel = np.nonzero(np.abs(d) <= 1)[0]
             outs.append(H.nz[sel.tolist()] if sel.size else ca.SX(0, 1))
+            hess_sel.append((H.sparsity(), sel))
             rs, cs, ds = rows[sel], cols[sel], d[sel]
             ka = np.maximum(stage_of[rs], stage_of[cs])
             pa = np.where(ds == -1, ypos[pos_in[rs]], pos_in[rs])
@@ -450,6 +526,9 @@ class ILQSolver:
         self._lam_tgt = np.concatenate(tgt).astype(np.intp)
         # the symbolic pieces, for the compiled stage-split quadratization (solvers.fast_ilq)
         self._quad_sym = (Xs, Us, p, C, E, ca.vertcat(*outs), phi_out, r_traj)
+        # for the quadratization with blended kinks, built when a solve first needs it
+        self._blend_sym = (Xs, Us, p, x_flat, u_flat, z, C, E, grads, player_rows, hess_sel)
+        self._blend_sym += (phi_out,)
         self.Lam = np.zeros(n_stage + N * n * n)  # stages 0..K-1, then the terminal stage
         self.Phi = np.zeros((K, self.nxs + 1, n))
         self.Phi[:, self.nxs, n - 1] = 1.0
@@ -539,9 +618,12 @@ class ILQSolver:
         ``compiled``: with the generated-C stage functions when :meth:`compile` built them
         (:mod:`solvers.fast_ilq`), else the interpreted trajectory function.
         """
-        if compiled and self._cquad is not None:
+        if self.kink_width > 0:  # blended kinks (interpreted; only after a failed search)
+            C, E, lam, phi = self._kink_quad[0](X, U, p, self.kink_width)
+        elif compiled and self._cquad is not None:
             return self._cquad(X, U, p)
-        C, E, lam, phi = self.quad(X, U, p)
+        else:
+            C, E, lam, phi = self.quad(X, U, p)
         self.Lam[self._lam_tgt] = lam[self._lam_src]
         self.Phi.reshape(-1)[self._phi_tgt] = phi
         return C.copy(), float(E[0])
@@ -698,15 +780,38 @@ class ILQSolver:
                 lin = linearize(X, U)
             return lin
 
+        # kink continuation (ILQOptions.kink_widths): off until the line search fails
+        widths = list(opts.kink_widths)
+        self.kink_width = 0.0
+        continuation: list = []  # (iteration, width) at every change of the width
+
+        def set_width(w):
+            self.kink_width = float(w)
+            continuation.append((it, self.kink_width))
+
+        it = 0
         C, E, PA, mu, res, merit = relinearize(Xbar, Ubar)
         status = Status.MAX_ITER if math.isfinite(res) else Status.NONFINITE
         stop = "max_iter" if math.isfinite(res) else "nonfinite"
         hist_E, hist_res, steps = [E], [res], []
         merits = [merit]  # merits (RMS of a) at the current regularization, newest last
+        eps_next = float(opts.step_size)  # first trial step of the next iteration
         max_mu = _max(mu)
-        it = resets = 0
+        resets = 0
+        rescue = False  # the secant step: only after a line search has failed
         while status is Status.MAX_ITER:
             if res <= opts.tol:
+                if mu_run <= mu0 and self.kink_width > 0:
+                    # converged with blended kinks: the next (smaller) width, then the exact
+                    # kinks; a width whose band holds no kink argument changes nothing
+                    w = self.kink_width
+                    inside = self.kinks_within(Xbar, Ubar, p, w) > 0
+                    nxt = [v for v in widths if v < w] if inside else []
+                    set_width(nxt[0] if nxt else 0.0)
+                    if inside:
+                        C, E, PA, mu, res, merit = relinearize(Xbar, Ubar)
+                        merits, eps_next = [merit], float(opts.step_size)
+                    continue
                 if mu_run <= mu0:  # the tolerance holds at the requested regularization
                     status, stop = Status.CONVERGED, "tol"
                     break
@@ -729,7 +834,8 @@ class ILQSolver:
             if it >= opts.max_iter:
                 break
             ref = max(merits[-opts.memory :])
-            eps, accepted = float(opts.step_size), None
+            eps, accepted = eps_next, None
+            a_old = PA[:, :, -1]
             for _trial in range(opts.max_backtracks + 1):
                 with np.errstate(all="ignore"):
                     Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps, opts.compiled)
@@ -745,7 +851,20 @@ class ILQSolver:
                     break
                 eps *= opts.backtrack
             it += 1
-            if accepted is None:  # no usable step: more regularization, same trajectory
+            if accepted is None:  # from now on the first trial step adapts (a secant)
+                rescue = opts.adaptive_step
+            if (
+                accepted is None
+                and widths
+                and not continuation
+                and mu_run <= mu0
+                and self.has_kinks
+            ):
+                # no usable step at the exact kinks: blend their curvature and go on
+                set_width(widths[0])
+                lin, eps = relinearize(Xbar, Ubar), 0.0
+                merits, eps_next = [], float(opts.step_size)
+            elif accepted is None:  # no usable step: more regularization, same trajectory
                 if not bump():
                     status, stop = Status.STALLED, "line_search"
                     if mu_run > mu0:  # report max |a| at the requested regularization
@@ -756,8 +875,12 @@ class ILQSolver:
                     break
                 lin, eps = relinearize(Xbar, Ubar), 0.0
                 merits = []
+                eps_next = float(opts.step_size)
             else:
                 Xbar, Ubar, lin, eps = accepted
+                eps_next = float(opts.step_size)
+                if rescue and lin is not None and mu_run <= mu0:
+                    eps_next = _secant_step(a_old, lin[2][:, :, -1], eps, eps_next)
                 if mu_run > mu0:  # success: lower the regularization again
                     mu_run = mu_run / 10.0 if mu_run / 10.0 >= _MIN_MU else mu0
                     mu_run = max(mu_run, mu0)
@@ -772,6 +895,12 @@ class ILQSolver:
             max_mu = max(max_mu, _max(mu))
             if not math.isfinite(res):
                 status, stop = Status.NONFINITE, "nonfinite"
+        if self.kink_width > 0:  # stopped while blended: report max |a| at the exact kinks
+            set_width(0.0)
+            mu_run = mu0
+            lin = linearize(Xbar, Ubar)
+            if math.isfinite(lin[4]):
+                C, E, PA, mu, res, merit = lin
         x, u = from_stages(g, Xbar, Ubar)
         grad_norm = math.nan
         if not self.custom_costs:
@@ -800,6 +929,7 @@ class ILQSolver:
                 "step_sizes": np.asarray(steps, float),
                 "regularization": mu,
                 "max_regularization": max_mu,
+                "kink_continuation": continuation,
                 "hessian": self.hessian,
                 "custom_costs": self.custom_costs,
                 "backend": "compiled" if opts.compiled else "numpy",
@@ -818,7 +948,83 @@ class ILQSolver:
 _MAX_MU = 1e8  # largest global regularization the adaptive retries reach
 _MIN_MU = 1e-4  # first raised regularization; below it, a lowered one returns to mu0
 _MAX_RESETS = 2  # returns to the requested regularization before a solve is called stalled
+_MIN_STEP = 1e-2  # smallest first trial step the secant predicts (relative to step_size)
 _ARMIJO = 0.1  # sufficient decrease of the merit per unit step: (1 - c eps) x reference
+
+
+def _smooth_kinks(f: ca.Function) -> ca.Function | None:
+    """``f`` (an SX function) with the curvature of its kinks blended over a width ``w``.
+
+    Returns ``(f's inputs, w) -> (r, z)``: ``r`` is ``f`` with every ``fmax(a, b) = a +
+    relu(b - a)`` replaced by ``a + g(b - a)`` (``fmin(a, b) = a - relu(a - b)`` likewise),
+    ``g' = clip(z / w + 1/2, 0, 1)``: equal to ``relu`` (values and derivatives) outside
+    ``|z| < w/2``, a quadratic blend inside, ``relu`` itself at ``w = 0``; ``z`` are the
+    kink arguments ``b - a`` (``a - b`` for ``fmin``). ``None`` when ``f`` has no kink, is
+    not an SX function or holds operations not replayed here (calls).
+    """
+    if not f.is_a("SXFunction"):
+        return None
+    ops = [f.instruction_id(k) for k in range(f.n_instructions())]
+    if ca.OP_FMAX not in ops and ca.OP_FMIN not in ops:
+        return None
+    zs, ws = ca.SX.sym("z"), ca.SX.sym("w")
+    h = 0.5 * ws
+    inner = (zs + h) ** 2 / (2 * ca.fmax(ws, 1e-300))
+    blend = ca.if_else(zs <= -h, 0, ca.if_else(zs >= h, zs, inner))
+    # one call per kink (evaluated symbolically in C++ and inlined into the new graph)
+    relu = ca.Function("smooth_relu", [zs, ws], [blend])
+    ins = [ca.SX.sym(f"i{i}", f.sparsity_in(i)) for i in range(f.n_in())]
+    w_in = ca.SX.sym("w")
+    out_nz = [[ca.SX(0)] * f.nnz_out(i) for i in range(f.n_out())]
+    kinks = []
+    work: dict = {}
+    for k, op in enumerate(ops):
+        a, o = f.instruction_input(k), f.instruction_output(k)
+        if op == ca.OP_CONST:
+            work[o[0]] = ca.SX(f.instruction_constant(k))
+        elif op == ca.OP_INPUT:
+            work[o[0]] = ins[a[0]].nz[a[1]]
+        elif op == ca.OP_OUTPUT:
+            out_nz[o[0]][o[1]] = work[a[0]]
+        elif op in (ca.OP_FMAX, ca.OP_FMIN):
+            x, y = work[a[0]], work[a[1]]
+            z = y - x if op == ca.OP_FMAX else x - y
+            kinks.append(z)
+            work[o[0]] = x + relu(z, w_in) if op == ca.OP_FMAX else x - relu(z, w_in)
+        elif len(a) == 2 and len(o) == 1:
+            work[o[0]] = ca.SX.binary(op, work[a[0]], work[a[1]])
+        elif len(a) == 1 and len(o) == 1:
+            work[o[0]] = ca.SX.unary(op, work[a[0]])
+        else:  # calls or other multi-argument operations
+            return None
+    outs = [
+        ca.SX(f.sparsity_out(i), ca.vertcat(*nz)) if nz else ca.SX(f.sparsity_out(i))
+        for i, nz in enumerate(out_nz)
+    ]
+    if len(outs) != 1:
+        return None
+    return ca.Function(f.name() + "_kinks", [*ins, w_in], [outs[0], ca.vertcat(*kinks)])
+
+
+def _secant_step(a_old, a_new, eps, cap):
+    """First trial step of the next iteration from the last accepted one (a secant).
+
+    Along the last direction the feed-forward went from ``a_old`` to ``a_new`` with step
+    ``eps``; with ``rho = <a_new, a_old> / |a_old|^2`` the linear model
+    ``a(e) = (1 - e (1 - rho) / eps) a_old`` vanishes at ``e = eps / (1 - rho)`` (at most
+    ``cap``). An iteration that overshoots (``a`` flips sign: ``rho = -0.97`` gives about
+    half a step) is damped; after a damped step the model is refitted (``rho ~ 0``: it
+    fitted, keep the step; ``rho = 1/2``: twice the step). After a full step only a clear
+    overshoot (``rho < -1/4``) damps, so an iteration that converges with full steps keeps
+    them.
+    """
+    den = float(np.vdot(a_old, a_old))
+    if not den > 0:
+        return cap
+    rho = float(np.vdot(a_new, a_old)) / den
+    if not (math.isfinite(rho) and rho < 1.0) or (eps >= cap and rho >= -0.25):
+        return cap
+    return min(cap, max(_MIN_STEP * cap, eps / (1.0 - rho)))
 
 
 def _max(a):

@@ -24,7 +24,15 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from solvers.ilq import ILQOptions, ILQSolver, from_stages, solve_ilq, to_stages
+from solvers.ilq import (
+    ILQOptions,
+    ILQSolver,
+    _secant_step,
+    _smooth_kinks,
+    from_stages,
+    solve_ilq,
+    to_stages,
+)
 from solvers.lm import solve_lm
 from solvers.result import Status
 
@@ -390,6 +398,10 @@ def test_options_are_checked():
         {"max_iter": 2.5},
         {"backtrack": 1.0},
         {"regularization": float("inf")},
+        {"kink_widths": (1e-3, 1e-2)},
+        {"kink_widths": (0.0,)},
+        {"kink_widths": "1e-2"},
+        {"adaptive_step": 1},
     ):
         with pytest.raises(SpecError, match="ilq."):
             ILQOptions(**bad)
@@ -524,3 +536,46 @@ def test_no_usable_step_is_stalled_with_the_honest_residual():
     assert res.info["stationarity"] > 1e-3
     assert res.info["max_regularization"] >= 1e4
     np.testing.assert_array_equal(res.controls, np.zeros(g.n_u))
+
+
+# --------------------------------------------------------------------------------------
+# kinks and the secant step (used after a failed line search; docs/ilq.md)
+# --------------------------------------------------------------------------------------
+def test_kink_blend_is_exact_outside_the_band_and_a_ramp_inside():
+    """``3 fmax(0, x0 - 1) + fmin(x1, 2)`` with its kinks blended over ``w``: values and
+    derivatives are the original's outside ``|z| < w/2``; inside, the derivative is the
+    ramp ``clip(z / w + 1/2, 0, 1)`` written out by hand."""
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [3 * ca.fmax(0, x[0] - 1) + ca.fmin(x[1], 2)])
+    sm = _smooth_kinks(f)
+    assert _smooth_kinks(ca.Function("g", [x], [x[0] * x[1]])) is None  # no kink
+    w = 0.1
+    xs, ws = ca.SX.sym("x", 2), ca.SX.sym("w")
+    r, z = sm(xs, ws)
+    d = ca.Function("d", [xs, ws], [r, ca.jacobian(r, xs), z])
+    for pt in ([0.5, 3.0], [1.2, 1.0], [0.94, 2.06]):  # every kink argument |z| > w/2
+        val, jac, zk = (np.asarray(v).ravel() for v in d(pt, w))
+        assert val[0] == pytest.approx(3 * max(0, pt[0] - 1) + min(pt[1], 2), abs=1e-15)
+        np.testing.assert_allclose(jac, [3 * (pt[0] > 1), float(pt[1] < 2)], atol=1e-15)
+        np.testing.assert_allclose(zk, [pt[0] - 1, pt[1] - 2], atol=1e-15)
+    # inside: z0 = +w/4 -> fmax slope 3 * 3/4; z1 = x1 - 2 = -w/4 -> fmin slope 1 - 1/4
+    _, jac, _ = (np.asarray(v).ravel() for v in d([1 + w / 4, 2 - w / 4], w))
+    np.testing.assert_allclose(jac, [2.25, 0.75], rtol=1e-12)
+    # w = 0 is the original function, values and derivatives
+    val, jac, _ = (np.asarray(v).ravel() for v in d([1.0 + 1e-9, 2.0 - 1e-9], 0.0))
+    np.testing.assert_allclose(jac, [3.0, 1.0], rtol=1e-12)
+
+
+def test_secant_step_damps_an_overshoot_and_returns_to_full_steps():
+    """``eps / (1 - rho)``, ``rho = <a_new, a_old> / |a_old|^2``, by hand."""
+    a = np.array([[1.0, 0.0], [0.0, 0.0]])
+    # a full step that flips a to -0.966 a: the linear model's root is 1 / 1.966
+    assert _secant_step(a, -0.966 * a, 1.0, 1.0) == pytest.approx(1 / 1.966)
+    # a full step that shrinks a, or flips it only a little: full steps are kept
+    assert _secant_step(a, 0.1 * a, 1.0, 1.0) == 1.0
+    assert _secant_step(a, -0.2 * a, 1.0, 1.0) == 1.0
+    # after a damped step: keep it when the model fits (rho ~ 0), back to 1 when rho = 1/2
+    assert _secant_step(a, 0.0 * a, 0.5, 1.0) == 0.5
+    assert _secant_step(a, 0.5 * a, 0.5, 1.0) == 1.0
+    assert _secant_step(a, -1e9 * a, 1.0, 1.0) == pytest.approx(1e-2)  # floor
+    assert _secant_step(0 * a, a, 1.0, 1.0) == 1.0  # nothing to compare with

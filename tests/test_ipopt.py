@@ -255,3 +255,35 @@ def test_nan_in_p_raises_spec_error_naming_p():
     with pytest.raises(SpecError) as e:
         solve_ipopt(g, p)
     assert e.value.field == "p"
+
+
+def test_exact_hessian_of_the_lagrangian_matches_finite_differences():
+    """The Hessian handed to IPOPT (the Jacobian of the gradient of ``lam_f E + lam_g' g``)
+    against central differences of the gradient, in float64, on a crossing game with an
+    active collision and a bounded state (its constraint curvature included)."""
+    import casadi as ca
+
+    from solvers.ipopt import _build_hessian
+
+    g = crossing_game(N=2, K=30, offset=0.3)
+    p = g.default_params()
+    solver = IpoptSolver(g, {"state_bounds": {"a0": ([None, None, 0.0, None], [None] * 4)}})
+    cons = solver._g
+    hess = _build_hessian(g, cons, "exact")
+    sym = g.symbols
+    lam_f, lam_g = 0.7, np.linspace(-1.0, 1.0, cons.shape[0])
+    grad = ca.Function(
+        "gl", [sym["u"], sym["p"]], [ca.gradient(lam_f * sym["E"] + ca.dot(lam_g, cons), sym["u"])]
+    )
+    u = np.random.default_rng(3).normal(scale=0.05, size=g.n_u)
+    te = np.asarray(g.function("term_energies")(u, p)).ravel()
+    assert sum(te[t.index] for t in g.terms if t.feature_type == "collision") > 1e-3
+    H = np.asarray(hess(u, p, lam_f, lam_g).full())
+    h = 1e-5
+    fd = np.empty((g.n_u, g.n_u))
+    for j in range(g.n_u):
+        e = np.zeros(g.n_u)
+        e[j] = h
+        fd[:, j] = (np.asarray(grad(u + e, p)) - np.asarray(grad(u - e, p))).ravel() / (2 * h)
+    np.testing.assert_allclose(H, np.triu(fd), rtol=0, atol=1e-6 * max(1.0, np.abs(fd).max()))
+    assert np.abs(np.triu(fd, 1)).max() > 1e-3  # the coupling blocks are not trivially zero

@@ -1,5 +1,5 @@
 """The IPOPT set-up cache (solvers.ipopt): the Hessian of the Lagrangian is built once per
-game structure and kept on disk.
+game structure and, with ``cache=True`` (off by default), kept on disk.
 
 References: a fresh build with the cache off (the same solution to 1e-12 and the same
 iteration count), a second Python process (it must load, not build: the build counter and
@@ -43,6 +43,7 @@ def files(folder: Path) -> list[Path]:
 
 
 def solve(game: PotentialGame, **opts):
+    opts.setdefault("cache", True)  # the disk cache is opt-in
     s = IpoptSolver(game, opts)
     p = game.default_params()
     return s, s.solve(p, 0.05 * np.ones(game.n_u))
@@ -93,7 +94,7 @@ SCRIPT = textwrap.dedent(
     from tests.helpers import crossing_spec
     m.DISK_CACHE_MIN_WORK = 0
     game = PotentialGame(crossing_spec(K={K}, offset=0.3))
-    s = m.IpoptSolver(game)
+    s = m.IpoptSolver(game, {{"cache": True}})
     r = s.solve(game.default_params())
     print(s.setup_source, m.CACHE_STATS["built"], m.CACHE_STATS["disk"], r.iterations)
     np.save({out!r}, r.controls)
@@ -183,6 +184,18 @@ def test_small_games_and_cache_off_write_nothing(tmp_path, monkeypatch):
     solve(game)  # below the size limit: built, not stored
     monkeypatch.setattr(ipopt_mod, "DISK_CACHE_MIN_WORK", 0)
     s, _ = solve(PotentialGame(crossing_spec(K=K)), cache=False)
+    assert s.setup_source == "built"
+    assert not folder.exists() or not files(folder)
+
+
+def test_the_disk_cache_is_off_by_default(tmp_path, monkeypatch):
+    """Loading a stored Hessian took as long as building it (docs/solvers.md), so nothing
+    is read or written unless ``cache=True``."""
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("EPO_CACHE_DIR", str(folder))
+    monkeypatch.setattr(ipopt_mod, "DISK_CACHE_MIN_WORK", 0)
+    assert ipopt_mod.IpoptOptions().cache is False
+    s = IpoptSolver(PotentialGame(crossing_spec(K=K)))
     assert s.setup_source == "built"
     assert not folder.exists() or not files(folder)
 
