@@ -570,9 +570,13 @@ class RPIScenario(Scenario):
         if r.solver == "ilq":
             from solvers.ilq import ILQOptions
 
+            # the recipe's iLQ: a solve that stalls is dropped, as when the recipe was made
+            # (no kink continuation, secant step or restart from LM, which came later and
+            # would keep other samples: a dataset must not change when it is resumed)
+            pinned = dict(kink_widths=(), adaptive_step=False, restart=False)
             if r.ground_truth == "peters":
-                return ILQOptions(max_iter=r.max_iter, tol=r.ilq_tol, compiled=r.compiled)
-            return ILQOptions(max_iter=r.max_iter, compiled=r.compiled)
+                return ILQOptions(max_iter=r.max_iter, tol=r.ilq_tol, compiled=r.compiled, **pinned)
+            return ILQOptions(max_iter=r.max_iter, compiled=r.compiled, **pinned)
         from solvers.lm import LMOptions
 
         return LMOptions(steps=r.max_iter, threads=1)

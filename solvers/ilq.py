@@ -64,11 +64,22 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
     and, when the residual has kinks (``max``/``min``: collision, bounds), their curvature
     is blended over the widths ``kink_widths`` in turn (:func:`_smooth_kinks`; the gains
     switch at a kink, so ``a`` and the merit jump there), each width after the previous one
-    converged, then the exact kinks again, where convergence is judged (docs/ilq.md).
+    converged, then the exact kinks again, where convergence is judged (docs/ilq.md). When
+    a width converged with kink arguments inside its band and, at the last width or the
+    exact kinks, no step passes at the requested regularization, the solve stops
+    ``STALLED`` with ``info['stop'] = 'kink'``: the blended solution sits on a kink, where
+    the one-sided curvatures give different gains, so no exact-kink iterate nearby has
+    ``a = 0``. The blended solution is returned (``info['kink_equilibrium']``: width, kink
+    arguments, blended policy and a message; ``P``, ``a`` and ``stationarity`` at the exact
+    kinks).
 
     The iteration stops when ``max |a| <= tol`` at the requested regularization (status
     ``CONVERGED``; ``STALLED`` when no step passes the line search up to the regularization
-    cap or the tolerance holds only with raised regularization; ``info['stop']``): the feed-forward
+    cap or the tolerance holds only with raised regularization; ``info['stop']``). Such a
+    ``line_search`` or ``regularized_only`` stall, with the game's own costs, restarts once
+    from the open-loop equilibrium (``solve_lm`` from the same start; ``restart``) within the
+    same ``max_iter``; the restart's result is kept when it converged or stopped at a
+    ``kink``, else the first one (``info['restart']``). The feed-forward
     term is the change of the controls a full step would make at fixed state, and ``a = 0``
     at every stage is the first-order feedback Nash condition: with everybody following
     ``U(X) = U* - P (X - X*)``, no player lowers its cost to first order by deviating at
@@ -124,6 +135,7 @@ Speed
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -167,7 +179,7 @@ def _num(name, v, lo=None, hi=None, strict_lo=False, integer=False):
 class ILQOptions:
     """iLQ game options (defaults: a converging standalone solve)."""
 
-    max_iter: int = 100  #: maximum number of iterations (backward pass + accepted forward pass)
+    max_iter: int = 500  #: maximum number of iterations (backward pass + accepted forward pass)
     tol: float = 1e-5  #: converged when max |a| (feed-forward, control units) <= tol
     hessian: str = "auto"  #: "gauss_newton", "exact"; "auto": GN for game costs, else exact
     step_size: float = 1.0  #: first trial eps on the feed-forward term in every iteration
@@ -182,6 +194,10 @@ class ILQOptions:
     #: widths over which the curvature of the residual's kinks (max/min) is blended, used in
     #: turn after the line search fails at the exact kinks; () never blends (docs/ilq.md)
     kink_widths: tuple = (1e-2, 1e-3, 1e-4)
+    #: after a 'stalled' solve (stop 'line_search' or 'regularized_only') with the game's own
+    #: costs, solve once more from the open-loop equilibrium (LM on the potential from the
+    #: same start), within the same max_iter; kept if it converges or stops at a kink
+    restart: bool = True
     compiled: bool = False  #: per-stage work as generated C (needs a C compiler; cached on disk)
 
     def __post_init__(self):
@@ -229,6 +245,8 @@ class ILQOptions:
             )
         if not isinstance(self.compiled, bool):
             raise SpecError("ilq.compiled", f"expected True or False, got {self.compiled!r}")
+        if not isinstance(self.restart, bool):
+            raise SpecError("ilq.restart", f"expected True or False, got {self.restart!r}")
 
 
 # --------------------------------------------------------------------------------------
@@ -743,8 +761,38 @@ class ILQSolver:
         U0, P = g.check_inputs(g.zero_controls() if u0 is None else u0, p)
         if U0.shape[0] != 1:
             raise SpecError("u0/p", "ILQSolver.solve takes one problem; solve_ilq takes a batch")
-        p = P[0]
-        _, Ubar = to_stages(g, None, U0[0])
+        res = self._solve_once(P[0], U0[0], opts, backward, opts.max_iter, t0)
+        if not (
+            opts.restart
+            and not self.custom_costs
+            and res.status is Status.STALLED
+            and res.info["stop"] in _RESTART_STOPS
+            and res.iterations < opts.max_iter
+        ):
+            return res
+        # iLQ's own safeguards failed (typically far from an equilibrium, in collision):
+        # start once more from the open-loop equilibrium, the potential's minimizer
+        from .lm import solve_lm
+
+        lm = solve_lm(g, P[0], U0[0])
+        again = self._solve_once(
+            P[0], np.asarray(lm.controls), opts, backward, opts.max_iter - int(res.iterations), t0
+        )
+        info = {"at": int(res.iterations), "stop": res.info["stop"], "lm_status": lm.status.value}
+        # the restart's result when it converged or found a kink equilibrium, else the first
+        keep = again if again.status is Status.CONVERGED or again.info["stop"] == "kink" else res
+        return dataclasses.replace(
+            keep,
+            iterations=np.int64(int(res.iterations) + int(again.iterations)),
+            wall_time=time.perf_counter() - t0,
+            info={**keep.info, "restart": {**info, "result": again.info["stop"]}},
+        )
+
+    def _solve_once(self, p, u0, opts, backward, max_iter, t0) -> SolveResult:
+        """One iLQ solve of problem ``p (n_p,)`` from ``u0 (n_u,)``, at most ``max_iter``
+        iterations (the iteration of the module docstring)."""
+        g = self.game
+        _, Ubar = to_stages(g, None, u0)
         Xbar, Ubar = self.rollout(
             p,
             np.zeros((self.K + 1, self.nx)),
@@ -790,6 +838,8 @@ class ILQSolver:
             continuation.append((it, self.kink_width))
 
         it = 0
+        on_kink = None  # (X, U, width, max |a|): converged while blended, kinks in the band
+        failed_width = 0.0
         C, E, PA, mu, res, merit = relinearize(Xbar, Ubar)
         status = Status.MAX_ITER if math.isfinite(res) else Status.NONFINITE
         stop = "max_iter" if math.isfinite(res) else "nonfinite"
@@ -807,6 +857,8 @@ class ILQSolver:
                     w = self.kink_width
                     inside = self.kinks_within(Xbar, Ubar, p, w) > 0
                     nxt = [v for v in widths if v < w] if inside else []
+                    if inside:  # a blended solution with kinks in its band
+                        on_kink = (Xbar, Ubar, w, res)
                     set_width(nxt[0] if nxt else 0.0)
                     if inside:
                         C, E, PA, mu, res, merit = relinearize(Xbar, Ubar)
@@ -831,7 +883,7 @@ class ILQSolver:
                 C, E, PA, mu, res, merit = lin
                 merits = [merit]
                 continue
-            if it >= opts.max_iter:
+            if it >= max_iter:
                 break
             ref = max(merits[-opts.memory :])
             eps, accepted = eps_next, None
@@ -864,6 +916,19 @@ class ILQSolver:
                 set_width(widths[0])
                 lin, eps = relinearize(Xbar, Ubar), 0.0
                 merits, eps_next = [], float(opts.step_size)
+            elif (
+                accepted is None
+                and on_kink is not None
+                and mu_run <= mu0
+                and self.kink_width <= widths[-1]
+            ):
+                # converged with the kinks blended (kinks inside the band), and at the last
+                # width or the exact kinks no step passes: the solution sits on a kink, where
+                # the one-sided curvatures give different gains (docs/ilq.md)
+                failed_width = self.kink_width
+                Xbar, Ubar = on_kink[0], on_kink[1]
+                status, stop = Status.STALLED, "kink"
+                break
             elif accepted is None:  # no usable step: more regularization, same trajectory
                 if not bump():
                     status, stop = Status.STALLED, "line_search"
@@ -901,6 +966,35 @@ class ILQSolver:
             lin = linearize(Xbar, Ubar)
             if math.isfinite(lin[4]):
                 C, E, PA, mu, res, merit = lin
+        kink_info = None
+        if stop == "kink":  # the blended solution, reported (P, a, max |a|) at the exact kinks
+            X1, U1, w, res_w = on_kink
+            self.kink_width = w
+            (zk,) = self._kink_quad[1](X1, U1, p)
+            z = np.asarray(zk, float).ravel()
+            sel = np.flatnonzero(np.abs(z) < 0.5 * w)
+            kink_info = {
+                "width": w,
+                "stationarity": res_w,
+                "kinks": [(int(i), float(z[i]), float(z[i] / w + 0.5)) for i in sel],
+            }
+            at = "the exact kinks" if failed_width == 0 else f"w = {failed_width:g}"
+            kink_info["message"] = (
+                f"no feedback equilibrium at the exact kinks: max |a| <= tol only with the kinks' "
+                f"curvature blended over w = {w:g} ({len(sel)} kink argument(s) inside the band, "
+                f"|z| <= {float(np.max(np.abs(z[sel]))):.1e}), and at {at} no step passes the "
+                f"line search: the blended solution keeps kink arguments inside the band, so the "
+                f"equilibrium likely sits on a kink, where the one-sided curvatures give "
+                f"different gains"
+            )
+            kink_info["failed_width"] = failed_width
+            # the blended policy (passes the sampled feedback-Nash check on the family games)
+            PAw = linearize(X1, U1)[2]
+            kink_info["gains"] = PAw[:, :, : self.nx].copy()
+            kink_info["gains_prev"] = PAw[:, :, self.nx : self.nxs].copy()
+            kink_info["feedforward"] = PAw[:, :, self.nxs].copy()
+            self.kink_width = 0.0
+            C, E, PA, mu, res, merit = linearize(X1, U1)
         x, u = from_stages(g, Xbar, Ubar)
         grad_norm = math.nan
         if not self.custom_costs:
@@ -930,6 +1024,7 @@ class ILQSolver:
                 "regularization": mu,
                 "max_regularization": max_mu,
                 "kink_continuation": continuation,
+                "kink_equilibrium": kink_info,
                 "hessian": self.hessian,
                 "custom_costs": self.custom_costs,
                 "backend": "compiled" if opts.compiled else "numpy",
@@ -947,6 +1042,7 @@ class ILQSolver:
 
 _MAX_MU = 1e8  # largest global regularization the adaptive retries reach
 _MIN_MU = 1e-4  # first raised regularization; below it, a lowered one returns to mu0
+_RESTART_STOPS = ("line_search", "regularized_only")  # stalled solves that restart
 _MAX_RESETS = 2  # returns to the requested regularization before a solve is called stalled
 _MIN_STEP = 1e-2  # smallest first trial step the secant predicts (relative to step_size)
 _ARMIJO = 0.1  # sufficient decrease of the merit per unit step: (1 - c eps) x reference

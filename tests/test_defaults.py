@@ -128,12 +128,43 @@ def test_ilq_kink_continuation_is_what_converges_the_hinge_game():
     with it (the default) the result is judged at the exact kinks: a solve from it with the
     continuation off stops at once."""
     g, p = game_of(ILQ_KINK_GAME)
-    off = solve_ilq(g, p, options={"kink_widths": ()})
+    off = solve_ilq(g, p, options={"kink_widths": (), "restart": False})
     assert off.status is Status.STALLED and not off.ok
     assert off.info["stationarity"] > 1e-3 and off.info["kink_continuation"] == []
+    assert "restart" not in off.info and off.info["kink_equilibrium"] is None
     res = solve_ilq(g, p)
     assert res.status is Status.CONVERGED
     widths = [w for _, w in res.info["kink_continuation"]]
     assert widths[0] == ILQOptions().kink_widths[0] and widths[-1] == 0.0
     again = solve_ilq(g, p, res.controls, options={"kink_widths": ()})
     assert again.status is Status.CONVERGED and again.iterations == 0
+
+
+def test_ilq_stalled_solve_restarts_from_the_open_loop_equilibrium():
+    """Without the continuation the kink game stalls; the default restart (ILQOptions.restart)
+    then solves once more from LM's open-loop equilibrium, within the same max_iter, and that
+    solve converges by iLQ's own test: a solve from its result stops at once, and the sampled
+    feedback-Nash check passes. The iterations of both attempts are counted."""
+    g, p = game_of(ILQ_KINK_GAME)
+    off = solve_ilq(g, p, options={"kink_widths": (), "restart": False})
+    res = solve_ilq(g, p, options={"kink_widths": ()})
+    assert res.status is Status.CONVERGED and res.info["stop"] == "tol"
+    r = res.info["restart"]
+    assert r["at"] == off.iterations and r["stop"] == off.info["stop"] and r["result"] == "tol"
+    assert off.iterations < res.iterations <= ILQOptions().max_iter
+    again = solve_ilq(g, p, res.controls, options={"kink_widths": (), "restart": False})
+    assert again.status is Status.CONVERGED and again.iterations == 0
+    check = feedback_nash_check(
+        g,
+        p,
+        res.states,
+        res.controls,
+        res.info["gains"],
+        res.info["feedforward"],
+        gains_prev=res.info["gains_prev"],
+        prev_variables=res.info["prev_variables"],
+    )
+    assert check.ok, check.gain
+    # a budget the first attempt uses up leaves none for a restart: its own status stays
+    short = solve_ilq(g, p, options={"kink_widths": (), "max_iter": int(off.iterations)})
+    assert short.status is not Status.CONVERGED and "restart" not in short.info

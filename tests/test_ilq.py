@@ -402,6 +402,7 @@ def test_options_are_checked():
         {"kink_widths": (0.0,)},
         {"kink_widths": "1e-2"},
         {"adaptive_step": 1},
+        {"restart": "yes"},
     ):
         with pytest.raises(SpecError, match="ilq."):
             ILQOptions(**bad)

@@ -50,6 +50,8 @@ def _value(text: str):
         return {"None": None, "inf": math.inf, "True": True, "False": False}[text]
     if text.startswith(('"', "`")):
         return text.strip('`"')
+    if text.startswith("("):  # a tuple of numbers, e.g. ILQOptions.kink_widths
+        return tuple(float(v) for v in text.strip("()").split(",") if v.strip())
     return float(text)
 
 
