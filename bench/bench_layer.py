@@ -22,6 +22,14 @@ warm-up run; forward + backward of ``loss = mean(x^2) + mean(u^2)``):
    sample = M problems, batch of one sample, as the paper's per-sample figure) next to the
    paper's numbers (RTX 3090 GPU + Ryzen 9 5900X, whole model).
 
+3. One LM step's VJP (``--part vjp``): CPU per problem and step of the monolithic
+   ``lm_step_vjp`` (interpreted; generated C with ``--compile-monolithic`` where it is
+   below ``MAX_COMPILED_INSTRUCTIONS``) and of the stage-wise one
+   (:mod:`solvers.fast_vjp`, interpreted and generated C) for RPI (N = 2, 4, K = 40), the
+   left-turn game (N = 2, K = 60) and the exiD game (N = 4, K = 20), with their largest
+   relative difference; with ``--train-data DIR`` (a left-turn dataset) also a training
+   step (batch 16, S = 20, fused + C backend) with either VJP.
+
 Run ``python bench/bench_layer.py`` (all) or ``--quick`` (smaller grid, fewer repeats).
 Threads: ``--threads`` (default: all usable cores) for CasADi and torch.
 """
@@ -631,6 +639,149 @@ def bench_grid(args):
     return table, mt
 
 
+# --------------------------------------------------------------------------------------
+# 3. One step's VJP: monolithic vs stage-wise (solvers/fast_vjp.py)
+# --------------------------------------------------------------------------------------
+def vjp_games():
+    """(label, game) of part 3: RPI (N = 2 and 4, K = 40), the left-turn dataset game
+    (N = 2, K = 60, path terms), the exiD dataset game (N = 4, K = 20, collision every 5th
+    step)."""
+    from scenarios.exid import ExidRecipe, ExidScenario
+    from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario
+
+    return [
+        ("RPI N=2 K=40", PotentialGame(rpi_spec(2))),
+        ("RPI N=4 K=40", PotentialGame(rpi_spec(4))),
+        ("left-turn N=2 K=60", LeftTurnScenario(LeftTurnRecipe()).game),
+        ("exiD N=4 K=20", ExidScenario(ExidRecipe()).game),
+    ]
+
+
+def _per_problem(f, args_in, reps):
+    """Median CPU seconds per problem of one batched call of ``f``, and its outputs."""
+    from solvers.batch import BatchFunction
+
+    bf = BatchFunction(f, 1)
+    out = bf(*args_in)
+    ts = []
+    for _ in range(reps):
+        c0 = time.process_time()
+        bf(*args_in)
+        ts.append(time.process_time() - c0)
+    return statistics.median(ts) / args_in[0].shape[0], out
+
+
+def bench_vjp(args):
+    from learning.layer import MAX_COMPILED_INSTRUCTIONS, layer_functions
+    from solvers.codegen import compile_functions
+    from solvers.fast_vjp import staged_step_vjp, staged_vjp_info
+
+    print("\n== 3. One LM step's VJP (learning/layer.py unrolled backward), batch of 16 ==")
+    print(
+        "CPU ms per problem and step (median of --repeats, one thread); cc: seconds of "
+        "compiler wall time (first build; a cached library loads in ms); monolithic C only up "
+        f"to {MAX_COMPILED_INSTRUCTIONS:,} instructions (with --compile-monolithic); "
+        "mono/staged C: the faster monolithic (C, else interpreted) over staged C"
+    )
+    print(
+        f"{'game':22s} {'instr mono':>10s} {'groups':>6s} {'mono interp':>11s} "
+        f"{'mono C':>8s} {'staged interp':>13s} {'staged C':>9s} {'cc mono':>8s} "
+        f"{'cc staged':>9s} {'mono/staged C':>13s} {'max rel err':>11s}"
+    )
+    B = 16
+    for label, game in vjp_games():
+        progress(f"vjp {label}")
+        rng = np.random.default_rng(0)
+        P, _ = problems(game, (B,), seed=1)
+        U, DU, Z = (0.3 * rng.normal(size=(B, game.n_u)) for _ in range(3))
+        xs = (U, P, DU, Z)
+        mono = layer_functions(game, "lm_step_vjp")
+        staged = staged_step_vjp(game)
+
+        t_mi, ref = _per_problem(mono, xs, args.repeats)
+        t_si, _ = _per_problem(staged, xs, args.repeats)
+        w0 = time.perf_counter()
+        sc = compile_functions([staged], f"epo_bench_vjp_staged_n{game.N}_k{game.K}")
+        t_comp = time.perf_counter() - w0
+        t_sc, got = _per_problem(sc[staged.name()], xs, 5 * args.repeats)
+        err = max(
+            float(np.max(np.abs(a - b)) / np.max(np.abs(b))) for a, b in zip(got, ref, strict=True)
+        )
+        t_mc = t_mcomp = None
+        if mono.n_instructions() <= MAX_COMPILED_INSTRUCTIONS and args.compile_monolithic:
+            progress(f"vjp {label}: compiling the monolithic VJP")
+            w0 = time.perf_counter()
+            mc = compile_functions([mono], f"epo_bench_vjp_mono_n{game.N}_k{game.K}")
+            t_mcomp = time.perf_counter() - w0
+            t_mc, _ = _per_problem(mc[mono.name()], xs, 5 * args.repeats)
+        ratio = (t_mc if t_mc is not None else t_mi) / t_sc
+        print(
+            f"{label:22s} {mono.n_instructions():10,d} {staged_vjp_info(game)['groups']:6d} "
+            f"{t_mi * 1e3:11.3f} {'-' if t_mc is None else f'{t_mc * 1e3:.3f}':>8s} "
+            f"{t_si * 1e3:13.3f} {t_sc * 1e3:9.3f} "
+            f"{'-' if t_mcomp is None else f'{t_mcomp:.1f}':>8s} {t_comp:9.1f} "
+            f"{ratio:13.1f} {err:11.1e}",
+            flush=True,
+        )
+    if args.train_data:
+        bench_vjp_train(args)
+
+
+def bench_vjp_train(args):
+    """A left-turn training step (batch 16, S = 20, alpha = 1) with the fused + C backend:
+    the layer's VJP monolithic (interpreted: too large to compile) vs staged in C."""
+    from learning.data import SceneDataset
+    from learning.models import ModelConfig, build_model
+    from learning.train import PAPER_LOSS_WEIGHTS, compute_loss, torch_threads
+
+    ds = SceneDataset(args.train_data, "train")
+    b = ds.batch(np.arange(16))
+    cfg = ModelConfig(
+        kind="epo",
+        lm_steps=20,
+        step_size=1.0,
+        goal_decoder="candidates",
+        hist_width=32,
+        lane_width=32,
+        global_width=64,
+        dec_width=32,
+        layer_backend="fused",
+        layer_compiled="yes",
+    )
+    torch.manual_seed(0)
+    m = build_model(cfg, ds.game)
+    layers = {"staged": m.layer}
+    layers["monolithic"] = GameLayer(
+        ds.game, m.layer.options, backward="unrolled", compiled=True, vjp="monolithic"
+    )
+    print(
+        f"\n   left-turn training step ({args.train_data}, batch 16, M = {cfg.modes}, S = 20): "
+        "CPU s (median of --repeats after a warm-up), one thread"
+    )
+    res = {}
+    for name in ("monolithic", "staged"):
+        m.layer = layers[name]
+        fw, tot = [], []
+        with torch_threads(1):
+            for i in range(args.repeats + 1):
+                m.zero_grad()
+                c0 = time.process_time()
+                out = m(b)
+                c1 = time.process_time()
+                parts = compute_loss("epo", out, b["gt"], PAPER_LOSS_WEIGHTS["epo"])
+                parts["loss"].backward()
+                if i:
+                    fw.append(c1 - c0)
+                    tot.append(time.process_time() - c0)
+        res[name] = (statistics.median(fw), statistics.median(tot))
+        print(
+            f"   VJP {name:10s} (layer.vjp={m.layer.vjp}, interpreted={m.layer.interpreted}): "
+            f"forward {res[name][0]:.3f} s, forward + backward {res[name][1]:.3f} s",
+            flush=True,
+        )
+    print(f"   step CPU monolithic / staged: {res['monolithic'][1] / res['staged'][1]:.2f}x")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller grid and fewer repeats")
@@ -649,7 +800,17 @@ def main(argv=None):
     ap.add_argument(
         "--blas-threads", type=int, default=1, help="numpy BLAS threads (dense backend; default 1)"
     )
-    ap.add_argument("--part", choices=["all", "rpi", "grid"], default="all")
+    ap.add_argument("--part", choices=["all", "rpi", "grid", "vjp"], default="all")
+    ap.add_argument(
+        "--train-data",
+        default=None,
+        help="vjp part: a left-turn dataset folder; adds a training step (batch 16, S = 20)",
+    )
+    ap.add_argument(
+        "--compile-monolithic",
+        action="store_true",
+        help="vjp part: also compile the monolithic VJPs (exiD: about a minute at -O0)",
+    )
     ap.add_argument("--no-theseus", action="store_true", help="skip the Theseus comparison")
     ap.add_argument(
         "--rpi-n", type=int, nargs="+", default=None, help="numbers of agents of part 1"
@@ -691,6 +852,8 @@ def main(argv=None):
         bench_rpi(args)
     if args.part in ("all", "grid"):
         bench_grid(args)
+    if args.part in ("all", "vjp"):
+        bench_vjp(args)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,13 @@ Backward modes (explicit choice, ``backward=``)
         CasADi function (:func:`layer_functions`) built once from the symbolic graph of the
         game (forward ``jtimes`` for ``J z`` and ``J du``, then one reverse sweep), so the
         VJP costs one linear solve plus about one Hessian-vector product per step and
-        problem. The forward pass stores its iterates ``u_s``, steps ``du_s`` and the
+        problem. ``phi``'s gradient is evaluated either as that one graph over the whole
+        trajectory (``vjp="monolithic"``, the reference) or stage-wise
+        (``vjp="staged"``, :mod:`solvers.fast_vjp`: a tangent rollout, one small
+        function per stage pattern mapped over its stages, an adjoint sweep; equal to
+        rounding), which in generated C compiles in seconds where the one graph of a long
+        horizon does not compile at all (``vjp="auto"``: staged with ``compiled=True``
+        for large graphs). The forward pass stores its iterates ``u_s``, steps ``du_s`` and the
         backend's linearizations (for :class:`~solvers.lm.DenseGN` that is ``J`` and
         ``J'J``: ``S (n_r + n_u) n_u`` doubles per problem). The damping is fixed (no
         adaptive rejection, as in the paper); options with ``adaptive_damping=True`` or
@@ -95,14 +101,18 @@ from torch.autograd.function import once_differentiable
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 from solvers.batch import BatchFunction
+from solvers.codegen import AUTO_O1_LIMIT
+from solvers.fast_vjp import staged_step_vjp, staged_vjp_info
 from solvers.lm import LMOptions, check_options, make_backend, solve_lm
 from solvers.result import Status
 
 __all__ = [
     "BACKWARD_MODES",
     "STATUS_CODES",
+    "VJP_MODES",
     "GameLayer",
     "MAX_COMPILED_INSTRUCTIONS",
+    "STAGED_VJP_MIN_INSTRUCTIONS",
     "GameLayerFunction",
     "LayerOutput",
     "decode_status",
@@ -111,6 +121,8 @@ __all__ = [
 ]
 
 BACKWARD_MODES = ("unrolled", "implicit")
+#: how the unrolled mode evaluates one step's VJP (``GameLayer(vjp=...)``)
+VJP_MODES = ("auto", "monolithic", "staged")
 ON_INVALID = ("raise", "mask")
 #: Status of code ``c`` is ``STATUS_CODES[c]`` (0 converged, 1 max_iter, 2 nonfinite, ...).
 STATUS_CODES: tuple[Status, ...] = tuple(Status)
@@ -196,13 +208,50 @@ def layer_functions(game: PotentialGame, name: str) -> ca.Function:
 #: (28k) compiles in seconds, the exiD game's (342k, N = 4, K = 20) in about a minute at
 #: -O0, and the left-turn game's (666k) was killed for memory on this 2-core machine
 MAX_COMPILED_INSTRUCTIONS = 400_000
+#: with ``compiled=True`` and ``vjp="auto"`` the step VJP is staged when the one graph
+#: (``lm_step_vjp``) has more SX instructions than this: the size from which
+#: :func:`solvers.codegen.compile_functions` compiles it at ``-O0``, about as slow as the
+#: interpreter (measured, ``bench/bench_layer.py --part vjp``: RPI N = 2, 28k: the one
+#: graph 2.4x faster than staged; N = 4, 72k: staged 2.2x faster)
+STAGED_VJP_MIN_INSTRUCTIONS = AUTO_O1_LIMIT
+
+
+def _choose_vjp(game: PotentialGame, vjp: str, compiled: bool) -> str:
+    """``"staged"`` or ``"monolithic"``: what ``vjp`` (:data:`VJP_MODES`) resolves to."""
+    if vjp == "monolithic" or (vjp == "auto" and not compiled):
+        return "monolithic"
+    if staged_step_vjp(game) is not None:
+        if vjp == "staged":
+            return "staged"
+        # auto: staged where the one graph would be compiled at -O0 or not at all; below,
+        # the one graph at -O1 is faster (RPI, N = 2, K = 40: 0.010 against 0.024 ms per
+        # problem and step; N = 4, 72k instructions at -O0: 0.136 against 0.061); stage
+        # functions too large to compile stay monolithic
+        big = layer_functions(game, "lm_step_vjp").n_instructions()
+        fits = staged_vjp_info(game)["distinct_instructions"] <= MAX_COMPILED_INSTRUCTIONS
+        return "staged" if big > STAGED_VJP_MIN_INSTRUCTIONS and fits else "monolithic"
+    if vjp == "staged":
+        raise SpecError(
+            "vjp",
+            f"no stage-wise VJP for this game ({staged_vjp_info(game)['reason']}); "
+            "use vjp='monolithic' or 'auto'",
+        )
+    return "monolithic"
 
 
 class _Core:
     """Options, backend and batched functions of one layer; numpy in, numpy out."""
 
     def __init__(
-        self, game, options, backward, on_invalid, backend, compiled=False, cache_dir=None
+        self,
+        game,
+        options,
+        backward,
+        on_invalid,
+        backend,
+        compiled=False,
+        cache_dir=None,
+        vjp="auto",
     ):
         self.game = game
         self.options = options
@@ -213,33 +262,43 @@ class _Core:
         t = options.threads
         # the forward rollout stays interpreted so that outputs equal solve_lm's bit for bit
         self.rollout = BatchFunction(game.function("rollout"), t)
-        names = ["rollout_vjp"] + (
-            ["lm_step_vjp"] if backward == "unrolled" else ["gradient_p_vjp"]
-        )
-        fns = {n: layer_functions(game, n) for n in names}
+        self.vjp_mode = _choose_vjp(game, vjp, compiled) if backward == "unrolled" else None
+        step = "lm_step_vjp_staged" if self.vjp_mode == "staged" else "lm_step_vjp"
+        names = ["rollout_vjp"] + ([step] if backward == "unrolled" else ["gradient_p_vjp"])
+        fns = {
+            n: staged_step_vjp(game) if n == "lm_step_vjp_staged" else layer_functions(game, n)
+            for n in names
+        }
         if backward == "implicit":
             fns["hessian"] = game.function("hessian")
         if compiled:
-            from solvers.codegen import compile_functions
+            from solvers.codegen import compile_libraries
 
             # a monolithic VJP of a large game (e.g. 666k instructions for the left-turn
             # game, K = 60 with path terms) takes the compiler minutes and gigabytes: such
-            # functions stay interpreted, the others are compiled
+            # functions stay interpreted, the others are compiled. The staged VJP is a small
+            # MX graph of stage functions (each compiled once): always compiled, in its own
+            # library, in parallel with the others
             small = {
                 n: f for n, f in fns.items() if f.n_instructions() <= MAX_COMPILED_INSTRUCTIONS
             }
             self.interpreted = sorted(set(fns) - set(small))
-            if small:
-                fns.update(
-                    compile_functions(
-                        list(small.values()),
-                        f"epo_layer_{backward}_n{game.N}_k{game.K}",
-                        cache_dir,
+            tag = f"n{game.N}_k{game.K}"
+            libs = []
+            if set(small) - {"lm_step_vjp_staged"}:
+                libs.append(
+                    (
+                        [f for n, f in small.items() if n != "lm_step_vjp_staged"],
+                        f"epo_layer_{backward}_{tag}",
                     )
                 )
+            if "lm_step_vjp_staged" in small:
+                libs.append(([small["lm_step_vjp_staged"]], f"epo_layer_vjp_staged_{tag}"))
+            for lib in compile_libraries(libs, cache_dir) if libs else []:
+                fns.update(lib)
         self.rollout_vjp = BatchFunction(fns["rollout_vjp"], t)
         if backward == "unrolled":
-            self.step_vjp = BatchFunction(fns["lm_step_vjp"], t)
+            self.step_vjp = BatchFunction(fns[step], t)
         else:
             self.hessian = BatchFunction(fns["hessian"], t)
             self.cross_vjp = BatchFunction(fns["gradient_p_vjp"], t)
@@ -509,6 +568,16 @@ class GameLayer(nn.Module):
         ``cache_dir``; needs a C compiler). Values are unchanged up to rounding; the
         forward rollout always stays interpreted, and so does any function above
         :data:`MAX_COMPILED_INSTRUCTIONS` (named in :attr:`interpreted`).
+    vjp: how the unrolled mode evaluates one step's VJP: ``"monolithic"`` (one CasADi
+        graph of the whole trajectory, :func:`layer_functions`; the reference),
+        ``"staged"`` (:func:`solvers.fast_vjp.staged_step_vjp`: stage functions, a
+        tangent rollout and an adjoint sweep; equal to rounding; an error for games
+        without stage structure) or ``"auto"``: staged with ``compiled=True`` where the
+        one graph is large (above :data:`STAGED_VJP_MIN_INSTRUCTIONS`: there the staged
+        C is 2 to 9x faster and compiles in seconds, where the one graph compiles at
+        ``-O0`` in minutes or not at all), else monolithic (small graphs compile well and
+        run faster; interpreted, both cost about the same). :attr:`vjp` says which is
+        used.
     """
 
     def __init__(
@@ -521,12 +590,15 @@ class GameLayer(nn.Module):
         backend=None,
         compiled: bool = False,
         cache_dir: str | None = None,
+        vjp: str = "auto",
     ):
         super().__init__()
         if not isinstance(game, PotentialGame):
             raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
         if backward not in BACKWARD_MODES:
             raise SpecError("backward", f"expected one of {BACKWARD_MODES}, got {backward!r}")
+        if vjp not in VJP_MODES:
+            raise SpecError("vjp", f"expected one of {VJP_MODES}, got {vjp!r}")
         if on_invalid not in ON_INVALID:
             raise SpecError("on_invalid", f"expected one of {ON_INVALID}, got {on_invalid!r}")
         if options is None:
@@ -554,9 +626,13 @@ class GameLayer(nn.Module):
         self.backward = backward
         self.on_invalid = on_invalid
         self.compiled = bool(compiled)
-        self.core = _Core(game, options, backward, on_invalid, backend, self.compiled, cache_dir)
+        self.core = _Core(
+            game, options, backward, on_invalid, backend, self.compiled, cache_dir, vjp
+        )
         #: the backward-pass functions left interpreted despite ``compiled`` (too large)
         self.interpreted: list[str] = list(self.core.interpreted)
+        #: how one step's VJP is evaluated: ``"staged"``, ``"monolithic"`` (None: implicit)
+        self.vjp: str | None = self.core.vjp_mode
 
     def extra_repr(self) -> str:
         o = self.options

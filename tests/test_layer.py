@@ -18,6 +18,7 @@ from epo_casadi import (
     Collision,
     GameSpec,
     Goal,
+    Jerk,
     PotentialGame,
     SpecError,
     TurnRate,
@@ -646,19 +647,101 @@ def test_compiled_layer_leaves_large_functions_interpreted(game8, monkeypatch):
         return [t.detach().numpy() for t in (out.controls, out.states, p.grad, u.grad)]
 
     plain = run(GameLayer(game8))
-    full = GameLayer(game8, compiled=True)
+    full = GameLayer(game8, compiled=True, vjp="monolithic")
     assert full.interpreted == []
     sizes = {n: layer_functions(game8, n).n_instructions() for n in ("lm_step_vjp", "rollout_vjp")}
     monkeypatch.setattr(
         L, "MAX_COMPILED_INSTRUCTIONS", (sizes["rollout_vjp"] + sizes["lm_step_vjp"]) // 2
     )
     assert sizes["rollout_vjp"] < sizes["lm_step_vjp"]
-    part = GameLayer(game8, compiled=True)
+    part = GameLayer(game8, compiled=True, vjp="monolithic")
     assert part.interpreted == ["lm_step_vjp"]
     monkeypatch.setattr(L, "MAX_COMPILED_INSTRUCTIONS", 0)
-    none = GameLayer(game8, compiled=True)
+    none = GameLayer(game8, compiled=True, vjp="monolithic")
     assert none.interpreted == ["lm_step_vjp", "rollout_vjp"]
     for a, b in zip(run(none), plain, strict=True):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(run(part), run(full), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------
+# Stage-wise VJP of the unrolled steps (solvers/fast_vjp.py)
+# --------------------------------------------------------------------------------------
+def lag_game(K: int = 8) -> PotentialGame:
+    """Two unicycles with jerk (rows coupling u_k and u_{k+1}), colliding head-on."""
+    spec = head_on_spec(K=K)
+    agents = [
+        AgentSpec(
+            a.name,
+            "unicycle",
+            [*a.features, Jerk(weight=0.2)],
+            radius=a.radius,
+            x0=a.x0,
+            goal=a.goal,
+        )
+        for a in spec.agents
+    ]
+    return PotentialGame(GameSpec(agents, spec.pair_features, horizon=K, dt=spec.dt))
+
+
+def layer_grads(layer: GameLayer, seed: int = 0):
+    """Outputs and gradients w.r.t. (u_init, w_own, w_pair, goal, x0) of a loss on both
+    the controls and the states."""
+    u0, w_own, w_pair, goal, x0 = inputs(layer, seed)
+    p = layer.assemble_params(w_own=w_own, w_pair=w_pair, goal=goal, x0=x0)
+    out = layer(p, u0)
+    (out.controls.square().sum() + out.states.sin().sum()).backward()
+    leaves = (u0, w_own, w_pair, goal, x0)
+    return [out.controls.detach(), out.states.detach()] + [t.grad for t in leaves]
+
+
+@pytest.mark.parametrize(
+    "make", [lambda: PotentialGame(head_on_spec(K=8)), lag_game], ids=["head_on", "jerk"]
+)
+def test_staged_vjp_layer_gradients_equal_monolithic(make):
+    """The layer's torch gradients with the stage-wise VJP equal those of the monolithic
+    one to rounding (S = 3 steps, collisions active, several backends)."""
+    game = make()
+    opts = LMOptions.paper(steps=3)
+    for backend in ("structured", "fused"):
+        o = LMOptions.paper(steps=3, backend=backend)
+        mono = GameLayer(game, o, vjp="monolithic")
+        staged = GameLayer(game, o, vjp="staged")
+        assert (mono.vjp, staged.vjp) == ("monolithic", "staged")
+        u0 = inputs(mono)[0].detach().numpy()
+        P0 = np.tile(game.params.defaults(), (2, 1))
+        assert collision_energy(game, u0, P0).max() > 0
+        a, b = layer_grads(staged), layer_grads(mono)
+        for x, y in zip(a, b, strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12 * float(y.abs().max()))
+    assert GameLayer(game, opts).vjp == "monolithic"  # interpreted: the reference
+
+
+def test_compiled_layer_uses_the_staged_vjp_for_large_graphs(game8, tmp_path, monkeypatch):
+    """``vjp="auto"`` with ``compiled=True``: monolithic for a small graph, staged above
+    STAGED_VJP_MIN_INSTRUCTIONS; the compiled staged layer equals the interpreted
+    monolithic one to rounding."""
+    pytest.importorskip("solvers.codegen").find_compiler()
+    import learning.layer as L
+
+    opts = LMOptions.paper(steps=2, backend="fused", compiled=True)
+    assert GameLayer(game8, opts, compiled=True, cache_dir=tmp_path).vjp == "monolithic"
+    monkeypatch.setattr(L, "STAGED_VJP_MIN_INSTRUCTIONS", 0)
+    layer = GameLayer(game8, opts, compiled=True, cache_dir=tmp_path)
+    assert layer.vjp == "staged" and layer.interpreted == []
+    ref = GameLayer(game8, opts, vjp="monolithic")
+    for x, y in zip(layer_grads(layer), layer_grads(ref), strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12 * float(y.abs().max()))
+
+
+def test_vjp_option_errors(game8):
+    with pytest.raises(SpecError, match="vjp"):
+        GameLayer(game8, vjp="fast")
+    from .test_extending import _coupled_game
+
+    coupled = _coupled_game()[0]
+    with pytest.raises(SpecError, match="coupled"):
+        GameLayer(coupled, vjp="staged")
+    assert GameLayer(coupled, vjp="auto", compiled=False).vjp == "monolithic"
+    assert GameLayer(game8, backward="implicit").vjp is None
