@@ -79,6 +79,13 @@ def show_predictions(
     else:
         ax = fig.add_subplot(1, 1, 1)
 
+    # ---- map (scenes with lanes, e.g. exiD-format): lane polylines in light grey
+    if "lanes" in batch:
+        lanes = batch["lanes"][0].numpy()
+        lmask = batch["lanes_mask"][0].numpy() if "lanes_mask" in batch else None
+        keep = np.arange(len(lanes)) if lmask is None else np.flatnonzero(lmask)
+        for n, k in enumerate(keep):
+            ax.plot(*lanes[k].T, "-", color="0.88", lw=5, zorder=0, label=None if n else "lanes")
     # ---- trajectories
     for i in range(N):
         c = AGENT_COLORS[i % len(AGENT_COLORS)]
@@ -157,9 +164,12 @@ def show_predictions(
         + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
     )
     lo, hi = pts.min(0), pts.max(0)
-    mid, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1.0) + 0.5
-    ax.set_xlim(mid[0] - half, mid[0] + half)
-    ax.set_ylim(mid[1] - half, mid[1] + half)
+    mid, half = (lo + hi) / 2, np.full(2, max(float((hi - lo).max()) / 2, 1.0) + 0.5)
+    narrow = int(np.argmin(hi - lo))
+    if (hi - lo)[narrow] < (hi - lo).max() / 3:  # an elongated scene (highway): a 3:1 view
+        half[narrow] = max((hi - lo)[narrow] / 2 + 0.5, half[narrow] / 3)
+    ax.set_xlim(mid[0] - half[0], mid[0] + half[0])
+    ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
     ax.set_aspect("equal", adjustable="box")
     ax.grid(alpha=0.3)
     ax.set_xlabel("x (m)")
