@@ -36,7 +36,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +61,8 @@ __all__ = [
     "observation_scene",
     "load_planner",
     "register_scene_fields",
+    "left_turn_fields",
+    "SCENARIO_FRAMES",
     "world_scenario",
 ]
 
@@ -129,17 +131,23 @@ def plan(model: nn.Module, scene: dict, agent: int = 0) -> SDVPlan:
 #: frames a dataset may store its samples in (manifest ``meta.frame``)
 FRAMES = ("world", "agent")
 
-#: scenario name -> ``fn(world, obs, frame) -> {field: array}``: scene fields the planner
-#: cannot build itself (e.g. ``goal_candidates`` from a map), in the dataset's frame
+#: the frame of a dataset scenario whose manifest states ``meta.frame`` in words rather than
+#: as one of :data:`FRAMES` (left-turn: "SDV at the origin, x along its heading, ...")
+SCENARIO_FRAMES = {"left-turn": "agent"}
+
+#: scenario name -> ``fn(world, obs, est, frame, spec) -> {field: array}``: scene fields the
+#: planner cannot build itself (e.g. ``goal_candidates`` from a map), in the dataset's frame
 SCENE_FIELDS: dict[str, Callable] = {}
 
 
 def register_scene_fields(scenario: str, fn: Callable) -> None:
     """Let the planner build a scenario's extra scene fields (e.g. ``goal_candidates``).
 
-    ``fn(world, obs, frame)`` returns a dict of numpy arrays without the batch axis, in the
-    dataset's frame (``frame`` is the :class:`SceneFrame` of the current step), exactly as
-    the scenario's generator writes them.
+    ``fn(world, obs, est, frame, spec)`` returns a dict of numpy arrays without the batch
+    axis, in the dataset's frame (``frame`` is the :class:`SceneFrame` of the current step;
+    ``est`` the :class:`~solvers.control.types.Estimate`; ``spec`` the
+    :class:`SceneSpec`, whose ``recipe`` is the run's dataset recipe), exactly as the
+    scenario's generator writes them.
     """
     if not isinstance(scenario, str) or not callable(fn):
         raise SpecError("scenario", "expected a scenario name and a callable")
@@ -164,6 +172,7 @@ class SceneSpec:
     frame: str = "world"  #: the dataset's frame
     reads_goals: bool = False  #: the model reads the scene's goals (ours with given goals)
     fields: tuple[str, ...] = ()  #: dataset fields besides history and future
+    recipe: Mapping | None = field(default=None, compare=False)  #: the dataset's recipe
 
 
 @dataclass(frozen=True)
@@ -216,6 +225,14 @@ class SceneFrame:
         out[..., :2] = self.points_out(x[..., :2])
         out[..., 3] = x[..., 3] + self.heading
         return out
+
+
+def _continuous_headings(theta: np.ndarray) -> np.ndarray:
+    """Headings ``(N, S)`` made continuous along each agent's history and shifted by the
+    multiple of ``2 pi`` that puts its current (last) heading into ``(-pi, pi]``: the
+    agent-frame convention of the datasets (:func:`scenarios.left_turn.LeftTurnScenario.cut`)."""
+    th = np.unwrap(theta, axis=-1)
+    return th - 2 * math.pi * np.ceil((th[:, -1:] - math.pi) / (2 * math.pi))
 
 
 def _backfill(hist: np.ndarray, valid: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -301,8 +318,11 @@ def observation_scene(
     frame = SceneFrame((float(cur[0]), float(cur[1])), float(cur[3]))
     if spec.frame == "world":
         frame = SceneFrame()
+    hist = frame.states_in(hist)
+    if spec.frame == "agent":
+        hist[..., 3] = _continuous_headings(hist[..., 3])
     scene = {
-        "history": frame.states_in(hist).transpose(1, 0, 2).astype(np.float32),
+        "history": hist.transpose(1, 0, 2).astype(np.float32),
         "history_valid": valid.all(0),
     }
     if spec.reads_goals:
@@ -499,7 +519,7 @@ class NetworkPlanner:
             np.stack(self._ego), est.history, est.valid, self.spec, goals
         )
         if self.extra_fields is not None:
-            scene.update(self.extra_fields(self.world, obs, frame))
+            scene.update(self.extra_fields(self.world, obs, est, frame, self.spec))
         return scene, frame
 
     @torch.no_grad()
@@ -552,6 +572,41 @@ class NetworkPlanner:
 
     def _failed(self, t: float, message: str, info: dict) -> Plan:
         return failed_plan(t, self.spec.dt, self.spec.horizon, message, **info)
+
+
+def left_turn_fields(
+    world, obs: Observation, est: Estimate, frame: SceneFrame, spec: SceneSpec
+) -> dict[str, np.ndarray]:
+    """The map fields of a left-turn scene (``lanes``, ``paths``, ``vref``,
+    ``goal_candidates``), built as :meth:`scenarios.left_turn.LeftTurnScenario.cut` builds
+    them: lane windows and goal candidates along the ego's route from its exact position and
+    along the oncoming car's lane from its *estimated* position, speed limits from the
+    ego's route, in ``frame``. ``world``: a :class:`scenarios.sim.left_turn.LeftTurnWorld`
+    after ``reset`` (its map and the oncoming car's lane); ``spec.recipe``: the run's
+    dataset recipe (window lengths and point counts; defaults where absent)."""
+    from scenarios.left_turn import LeftTurnRecipe, SDVPolicy, _at, _progress
+
+    known = {f.name for f in fields(LeftTurnRecipe)}
+    r = LeftTurnRecipe.from_dict({k: v for k, v in (spec.recipe or {}).items() if k in known})
+    pol = SDVPolicy(world, r, "enter")  # the route, turn interval and speed limits
+    s_e = _progress(np.asarray(obs.ego, float)[:2], pol.route)
+    s_o = _progress(np.asarray(est.states, float)[0, :2], world.other_route)
+    win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
+    ahead = np.linspace(0.0, r.goal_range, r.goal_points)
+    lanes = np.stack([_at(pol.route, s_e + win)[0], _at(world.other_route, s_o + win)[0]])
+    cands = np.stack([_at(pol.route, s_e + ahead)[0], _at(world.other_route, s_o + ahead)[0]])
+    t0, t1 = pol.turn
+    turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
+    lanes = frame.points_in(lanes).astype(np.float32)
+    return {
+        "lanes": lanes,
+        "paths": lanes.copy(),
+        "vref": np.array([pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim], np.float32),
+        "goal_candidates": frame.points_in(cands).astype(np.float32),
+    }
+
+
+register_scene_fields("left-turn", left_turn_fields)
 
 
 # --------------------------------------------------------------------------------------
@@ -653,6 +708,8 @@ def load_planner(
             )
         hist = [H + 1, len(ck["game"]["agents"]), 4]
     frame = meta.get("frame", "world")
+    if frame not in FRAMES:  # a manifest that describes its frame in words
+        frame = SCENARIO_FRAMES.get(scenario, frame)
     if frame not in FRAMES:
         raise SpecError(
             f"{d / 'config.json'}.data.meta.frame", f"expected one of {list(FRAMES)}, got {frame!r}"
@@ -696,6 +753,7 @@ def load_planner(
         spec0,
         reads_goals=reads_goals,
         fields=tuple(k for k in schema if k not in ("history", "future")),
+        recipe=data.get("recipe"),
     )
     planner = NetworkPlanner(model, spec, options)
     planner.reset(world)

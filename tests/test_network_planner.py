@@ -345,3 +345,50 @@ def test_fused_layer_backend_plans_as_the_trained_backend(runs, sample):
     np.testing.assert_allclose(a.probabilities, b.probabilities, rtol=0, atol=1e-6)
     with pytest.raises(SpecError, match="planner.layer_backend"):
         load_planner(runs["epo"], world, layer_backend="fast")
+
+
+# ------------------------------------------------------------------------ left turn
+def test_left_turn_scenes_equal_the_dataset_samples():
+    """Regression: a left-turn run once planned on scenes unlike its training data (the
+    manifest states its frame in words, so the run was refused; headings wrapped per step
+    where the dataset keeps them continuous with the current one in (-pi, pi], which flips
+    the oncoming car's heading near pi; no lanes, paths, speed limits or goal candidates,
+    so every plan failed). Reference: the generator's samples of one episode
+    (:meth:`scenarios.left_turn.LeftTurnScenario.cut`), the world replayed from its stored
+    seed and the planner fed the true states step by step."""
+    from learning.control import SCENARIO_FRAMES, SceneSpec
+    from scenarios import dataset as ds
+    from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario, SDVPolicy, simulate
+
+    recipe = LeftTurnRecipe(
+        episodes_per_geometry=1, episodes_per_shard=1, history=5, horizon=20,
+        episode_steps=40, replay_extra=80, lane_points=6, goal_points=8,
+    )  # fmt: skip
+    sc = LeftTurnScenario(recipe)
+    assert SCENARIO_FRAMES[sc.name] == "agent" and sc.meta()["frame"] not in ("world", "agent")
+    unit = sc.run_unit(1, ds.unit_seed(0, 1))  # g1: val, not augmented
+    world = sc.world("g1")
+    world.reset(int(unit["world_seed"][0]))
+    pol = SDVPolicy(world, recipe, "enter" if unit["intent"][0] else "wait")
+    X = simulate(world, pol, recipe.episode_steps, until_outcome=recipe.replay_extra)[0].states
+    H = recipe.history
+    fields = ("history_valid", "lanes", "paths", "vref", "goal_candidates")
+    spec = SceneSpec("left-turn", "sc", 2, H + 1, recipe.horizon, recipe.dt, frame="agent",
+                     fields=fields, recipe=recipe.to_dict())  # fmt: skip
+    planner = NetworkPlanner(torch.nn.Identity(), spec)
+    planner.world = world
+    near_pi = 0
+    for k in range(len(unit["step"])):
+        assert unit["step"][k] == k
+        obs, est = _observe(
+            X[k : k + 1, 0], X[max(0, k - H) : k + 1, 1:].transpose(1, 0, 2), k * DT
+        )
+        scene, frame = planner.scene(obs, est)
+        np.testing.assert_allclose(frame.origin, X[k, 0, :2], atol=1e-12)
+        np.testing.assert_array_equal(scene["history_valid"], unit["history_valid"][k])
+        np.testing.assert_allclose(scene["history"], unit["history"][k], rtol=0, atol=1e-4)
+        for f in fields[1:]:
+            assert scene[f].dtype == np.float32 and scene[f].shape == unit[f].shape[1:], f
+            np.testing.assert_allclose(scene[f], unit[f][k], rtol=0, atol=1e-4, err_msg=f)
+        near_pi += abs(abs(unit["history"][k, -1, 1, 3]) - math.pi) < 0.3
+    assert near_pi > 5  # the oncoming car's heading is near +-pi in many samples
