@@ -584,24 +584,18 @@ def left_turn_fields(
     ego's route, in ``frame``. ``world``: a :class:`scenarios.sim.left_turn.LeftTurnWorld`
     after ``reset`` (its map and the oncoming car's lane); ``spec.recipe``: the run's
     dataset recipe (window lengths and point counts; defaults where absent)."""
-    from scenarios.left_turn import LeftTurnRecipe, SDVPolicy, _at, _progress
+    from scenarios.left_turn import LeftTurnRecipe, SDVPolicy, map_fields
 
     known = {f.name for f in fields(LeftTurnRecipe)}
     r = LeftTurnRecipe.from_dict({k: v for k, v in (spec.recipe or {}).items() if k in known})
     pol = SDVPolicy(world, r, "enter")  # the route, turn interval and speed limits
-    s_e = _progress(np.asarray(obs.ego, float)[:2], pol.route)
-    s_o = _progress(np.asarray(est.states, float)[0, :2], world.other_route)
-    win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
-    ahead = np.linspace(0.0, r.goal_range, r.goal_points)
-    lanes = np.stack([_at(pol.route, s_e + win)[0], _at(world.other_route, s_o + win)[0]])
-    cands = np.stack([_at(pol.route, s_e + ahead)[0], _at(world.other_route, s_o + ahead)[0]])
-    t0, t1 = pol.turn
-    turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
+    ego, other = np.asarray(obs.ego, float)[:2], np.asarray(est.states, float)[0, :2]
+    lanes, cands, vref = map_fields(r, world, pol, ego, other)
     lanes = frame.points_in(lanes).astype(np.float32)
     return {
         "lanes": lanes,
         "paths": lanes.copy(),
-        "vref": np.array([pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim], np.float32),
+        "vref": vref.astype(np.float32),
         "goal_candidates": frame.points_in(cands).astype(np.float32),
     }
 

@@ -443,6 +443,27 @@ def rotate_sample(sample: dict[str, np.ndarray], phi: float) -> dict[str, np.nda
     return out
 
 
+def map_fields(
+    r: LeftTurnRecipe, world, pol: SDVPolicy, ego_xy, other_xy
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A scene's map fields in world coordinates: ``lanes`` ``(2, P, 2)`` (windows of the
+    SDV's route and the other's lane around their positions), ``goal_candidates``
+    ``(2, G, 2)`` along them, and ``vref`` ``(2,)`` (the turn's limit while the turn is in the
+    SDV's window). The generator (:meth:`LeftTurnScenario.cut`, exact positions) and the
+    closed-loop planner (:func:`learning.control.left_turn_fields`, the other's estimate)
+    build their scenes with it."""
+    s_e = _progress(np.asarray(ego_xy, float), pol.route)
+    s_o = _progress(np.asarray(other_xy, float), world.other_route)
+    win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
+    ahead = np.linspace(0.0, r.goal_range, r.goal_points)
+    lanes = np.stack([_at(pol.route, s_e + win)[0], _at(world.other_route, s_o + win)[0]])
+    cands = np.stack([_at(pol.route, s_e + ahead)[0], _at(world.other_route, s_o + ahead)[0]])
+    t0, t1 = pol.turn
+    turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
+    vref = np.array([pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim])
+    return lanes, cands, vref
+
+
 class LeftTurnScenario(Scenario):
     """The left-turn demonstration generator (module docstring). Construct hooks:
     :meth:`world`, :meth:`agent_specs`, :meth:`game_spec`, :meth:`episode`,
@@ -650,16 +671,7 @@ class LeftTurnScenario(Scenario):
         fut_l = np.array(fut)
         fut_l[..., :2] = to_frame(fut[..., :2], pose)
         fut_l[..., 3] = _unwrap_shift(fut[..., 3] - pose[2], cur[:, None])
-        # lanes, paths, goal candidates, reference speeds
-        s_e = _progress(X[k, 0, :2], pol.route)
-        s_o = _progress(X[k, 1, :2], world.other_route)
-        win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
-        ahead = np.linspace(0.0, r.goal_range, r.goal_points)
-        lanes = np.stack([_at(pol.route, s_e + win)[0], _at(world.other_route, s_o + win)[0]])
-        cands = np.stack([_at(pol.route, s_e + ahead)[0], _at(world.other_route, s_o + ahead)[0]])
-        t0, t1 = pol.turn
-        turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
-        vref = [pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim]
+        lanes, cands, vref = map_fields(r, world, pol, X[k, 0, :2], X[k, 1, :2])
         lanes = to_frame(lanes, pose)
         return {
             "history": hist_l,
