@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from epo_casadi import PotentialGame  # noqa: E402
-from solvers.feedback_nash import feedback_nash_check  # noqa: E402
+from solvers.feedback_nash import check_ilq_result  # noqa: E402
 from solvers.ilq import solve_ilq  # noqa: E402
 from solvers.ipopt import solve_ipopt  # noqa: E402
 from solvers.lm import solve_lm  # noqa: E402
@@ -72,16 +72,7 @@ def run(name: str, args: tuple, solver: str) -> dict:
         "time_s": round(dt, 3),
     }
     if solver == "ilq":
-        c = feedback_nash_check(
-            g,
-            p,
-            r.states,
-            r.controls,
-            r.info["gains"],
-            r.info["feedforward"],
-            gains_prev=r.info["gains_prev"],
-            prev_variables=r.info["prev_variables"],
-        )
+        c = check_ilq_result(g, p, r)
         rec.update(
             stop=r.info["stop"],
             stationarity=float(r.info["stationarity"]),

@@ -377,18 +377,9 @@ def _check(choice: SolverChoice, game: PotentialGame, p: np.ndarray, res):
     """(check name, ok, largest player gain, seconds)."""
     t0 = time.perf_counter()
     if choice.name == "ilq":
-        from .feedback_nash import feedback_nash_check
+        from .feedback_nash import check_ilq_result
 
-        c = feedback_nash_check(
-            game,
-            p,
-            res.states,
-            res.controls,
-            res.info["gains"],
-            res.info["feedforward"],
-            gains_prev=res.info.get("gains_prev"),
-            prev_variables=res.info.get("prev_variables"),
-        )
+        c = check_ilq_result(game, p, res)
         return "feedback", c.ok, float(np.max(c.gain)), time.perf_counter() - t0
     from .nash import nash_certificate
 

@@ -42,7 +42,12 @@ from epo_casadi.game import PotentialGame
 
 from .lm import check_options
 
-__all__ = ["FeedbackNashOptions", "FeedbackNashCheck", "feedback_nash_check"]
+__all__ = [
+    "FeedbackNashOptions",
+    "FeedbackNashCheck",
+    "feedback_nash_check",
+    "check_ilq_result",
+]
 
 
 @dataclass(frozen=True)
@@ -239,4 +244,27 @@ def feedback_nash_check(
         trials=trials // max(N, 1),
         tol=opts.tol,
         time_s=time.perf_counter() - t0,
+    )
+
+
+def check_ilq_result(
+    game: PotentialGame,
+    p: np.ndarray,
+    result,
+    options: FeedbackNashOptions | dict | None = None,
+) -> FeedbackNashCheck:
+    """:func:`feedback_nash_check` of the policy a :func:`solvers.ilq.solve_ilq` result
+    holds: its trajectory, ``info["gains"]``, ``info["feedforward"]`` and, for games with
+    lagged variables, ``info["gains_prev"]`` / ``info["prev_variables"]``."""
+    info = result.info
+    return feedback_nash_check(
+        game,
+        p,
+        result.states,
+        result.controls,
+        info["gains"],
+        info["feedforward"],
+        options,
+        gains_prev=info.get("gains_prev"),
+        prev_variables=info.get("prev_variables"),
     )

@@ -26,7 +26,7 @@ import pytest
 
 from epo_casadi import PotentialGame
 from scenarios.gamefile import EXAMPLES, example_path, load_game
-from solvers.feedback_nash import feedback_nash_check
+from solvers.feedback_nash import check_ilq_result
 from solvers.ilq import ILQOptions, solve_ilq
 from solvers.ipopt import solve_ipopt
 from solvers.lm import solve_lm
@@ -110,16 +110,7 @@ def test_ilq_defaults_converge(name):
     assert res.info["stationarity"] <= 1e-5
     again = solve_ilq(g, p, res.controls)
     assert again.status is Status.CONVERGED and again.iterations == 0
-    check = feedback_nash_check(
-        g,
-        p,
-        res.states,
-        res.controls,
-        res.info["gains"],
-        res.info["feedforward"],
-        gains_prev=res.info["gains_prev"],
-        prev_variables=res.info["prev_variables"],
-    )
+    check = check_ilq_result(g, p, res)
     assert check.ok, check.gain
 
 
@@ -154,16 +145,7 @@ def test_ilq_stalled_solve_restarts_from_the_open_loop_equilibrium():
     assert off.iterations < res.iterations <= ILQOptions().max_iter
     again = solve_ilq(g, p, res.controls, options={"kink_widths": (), "restart": False})
     assert again.status is Status.CONVERGED and again.iterations == 0
-    check = feedback_nash_check(
-        g,
-        p,
-        res.states,
-        res.controls,
-        res.info["gains"],
-        res.info["feedforward"],
-        gains_prev=res.info["gains_prev"],
-        prev_variables=res.info["prev_variables"],
-    )
+    check = check_ilq_result(g, p, res)
     assert check.ok, check.gain
     # a budget the first attempt uses up leaves none for a restart: its own status stays
     short = solve_ilq(g, p, options={"kink_widths": (), "max_iter": int(off.iterations)})
