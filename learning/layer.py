@@ -204,10 +204,13 @@ def layer_functions(game: PotentialGame, name: str) -> ca.Function:
 # The numeric core (numpy, float64)
 # --------------------------------------------------------------------------------------
 #: with ``compiled=True`` the layer's functions above this many CasADi instructions stay
-#: interpreted (:attr:`GameLayer.interpreted` names them): measured, the RPI game's VJP
-#: (28k) compiles in seconds, the exiD game's (342k, N = 4, K = 20) in about a minute at
-#: -O0, and the left-turn game's (666k) was killed for memory on this 2-core machine
-MAX_COMPILED_INSTRUCTIONS = 400_000
+#: interpreted (:attr:`GameLayer.interpreted` names them). Measured on this project's
+#: 2-core machine: the RPI game's step VJP (28k) compiles in seconds; the exiD game's
+#: (342k, N = 4, K = 20) took about 5 min and 7.7 GB per gcc at -O0 and then ran only 1.6x
+#: faster than the interpreter (0.678 against 1.103 ms per problem and step,
+#: ``bench/bench_layer.py --part vjp``); the left-turn game's (666k) got gcc killed for
+#: memory. Games with a stage structure use the stage-wise VJP instead (small functions)
+MAX_COMPILED_INSTRUCTIONS = 150_000
 #: with ``compiled=True`` and ``vjp="auto"`` the step VJP is staged when the one graph
 #: (``lm_step_vjp``) has more SX instructions than this: the size from which
 #: :func:`solvers.codegen.compile_functions` compiles it at ``-O0``, about as slow as the
