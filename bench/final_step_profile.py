@@ -70,9 +70,9 @@ def main() -> None:
             for S in (2, 5, 20, 100):
                 if S <= 5:
                     opts = LMOptions.paper(steps=S, step_size=m.step_size, damping=m.damping)
-                    layer, tag = GameLayer(game, opts), f"  LM S={S}, paper steps"
+                    layer, tag = GameLayer(model.game, opts), f"  LM S={S}, paper steps"
                 else:
-                    layer = GameLayer(game, LMOptions(steps=S), backward="implicit")
+                    layer = GameLayer(model.game, LMOptions(steps=S), backward="implicit")
                     tag = f"  LM up to {S} steps, converging"
                 o = layer(p, u0.double())
                 x = o.states.float().reshape(B, M, N, K + 1, -1)[:, :, :, 1:, :2]

@@ -47,6 +47,7 @@ Predictors (:func:`build_model`):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -54,6 +55,7 @@ import torch
 from torch import nn
 
 from epo_casadi.errors import SpecError, check_bool, check_number
+from epo_casadi.features import Collision
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
@@ -138,6 +140,11 @@ class ModelConfig:
     #: generated C for the layer's functions (backend and backward pass): "auto" (when a C
     #: compiler is found; compiled once per game structure, cached on disk), "yes" or "no"
     layer_compiled: str = "auto"
+    #: ours: the margin (m) of the model game's collision feature, whose reach is then
+    #: ``r_i + r_j + collision_margin``; None keeps the dataset game's. The agents' radii,
+    #: and with them the overlap rate, stay the dataset's (docs/experiment_rpi.md: the Peters
+    #: ground truth interacts up to 1.5 m, beyond the RPI game's 0.65 m reach)
+    collision_margin: float | None = None
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm", "tgl"):
@@ -189,6 +196,13 @@ class ModelConfig:
             )
         for k in ("step_size", "damping", "goal_range"):
             check_number(f"model.{k}", getattr(self, k), lo=0, lo_open=True)
+        if self.collision_margin is not None:
+            check_number("model.collision_margin", self.collision_margin, lo=0)
+            if self.kind != "epo":
+                raise SpecError(
+                    "model.collision_margin",
+                    f"only the 'epo' model has a game layer; the {self.kind!r} model needs null",
+                )
         if self.layer_backend not in LAYER_BACKENDS:
             raise SpecError(
                 "model.layer_backend",
@@ -364,6 +378,7 @@ class EPOModel(_Base):
     """Ours: decoders -> game layer (S LM steps on B x M problems) -> scene probabilities."""
 
     def __init__(self, cfg: ModelConfig, game: PotentialGame):
+        game = model_game(game, cfg)
         super().__init__(cfg, game)
         from .layer import GameLayer
 
@@ -534,6 +549,20 @@ MODEL_KINDS: dict[str, type[nn.Module]] = {"epo": EPOModel, "sc": SCModel, "vlst
 def register_model_kind(kind: str, cls: type[nn.Module]) -> None:
     """Make :func:`build_model` build ``cls`` for ``ModelConfig(kind=kind)``."""
     MODEL_KINDS[kind] = cls
+
+
+def model_game(game: PotentialGame, cfg: ModelConfig) -> PotentialGame:
+    """The game of ours' layer: ``game`` with ``cfg.collision_margin`` (if set) as the margin
+    of every collision feature; the same object when nothing changes."""
+    m = cfg.collision_margin
+    spec = game.spec
+    if m is None or not any(isinstance(f, Collision) for f in spec.pair_features):
+        return game
+    pair = tuple(
+        dataclasses.replace(f, margin=float(m)) if isinstance(f, Collision) else f
+        for f in spec.pair_features
+    )
+    return PotentialGame(dataclasses.replace(spec, pair_features=pair))
 
 
 def build_model(cfg: ModelConfig, game: PotentialGame) -> nn.Module:

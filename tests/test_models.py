@@ -304,3 +304,34 @@ def test_cv_extrapolates_the_last_displacement():
     assert (constant_velocity(hist[:, -1:], 2) == hist[:, -1:, :, None, :2].squeeze(1)).all()
     with pytest.raises(SpecError, match="horizon"):
         ConstantVelocity(0)
+
+
+def test_collision_margin_sets_the_reach_of_ours_game_only():
+    """``collision_margin`` moves the reach of ours' collision term to ``r_i + r_j + margin``
+    (checked against the hinge by hand at a fixed separation); the dataset's game, its
+    radii (the overlap rate's) and the other energy terms stay as they were."""
+    _, game = scene_batch(2)
+    cfg = ModelConfig(kind="epo", collision_margin=1.0, **TINY)
+    model = build_model(cfg, game)
+    assert build_model(ModelConfig(kind="epo", **TINY), game).game is game
+    assert model.game is not game and np.array_equal(model.game.radii(), game.radii())
+    # both agents standing still 1.2 m apart, zero controls, pair weight 3
+    p = game.default_params()
+    L = game.params
+    for name, val in [("x0.robot.x", 0.0), ("x0.pedestrian.x", 1.2), ("x0.robot.v", 0.0)]:
+        p[L.names.index(name)] = val
+    p[L.names.index("x0.pedestrian.y")] = p[L.names.index("x0.robot.y")]
+    p[L.names.index("x0.pedestrian.v")] = 0.0
+    p[L.names.index("w.robot-pedestrian.collision")] = 3.0
+    u = np.zeros(game.n_u)
+    e_new = np.asarray(model.game.function("term_energies")(u, p)).ravel()
+    e_old = np.asarray(game.function("term_energies")(u, p)).ravel()
+    reach = float(np.sum(game.radii())) + 1.0  # 0.25 + 0.25 + 1.0 = 1.5 m
+    hinge = reach - np.sqrt(1.2**2 + 1e-9)
+    expected = 0.5 * game.K * (3.0 * hinge) ** 2  # every stage k = 1..K
+    diff = e_new - e_old
+    assert np.isclose(diff.sum(), expected, rtol=1e-12)
+    assert np.count_nonzero(np.abs(diff) > 1e-12) == 1  # only the collision term changed
+    with pytest.raises(SpecError) as e:
+        ModelConfig(kind="sc", collision_margin=1.0)
+    assert e.value.field == "model.collision_margin"
