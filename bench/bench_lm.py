@@ -7,6 +7,8 @@ Not a test. Run from the repository root::
     .venv/bin/python bench/bench_lm.py --agents 2 4 --paths struct struct-C fused fused-C numpy
     .venv/bin/python bench/bench_lm.py --agents 2 4 8 12 --horizons 20 40 80 160 \\
         --paths fused-C --plot docs/figures/lm_step_scaling.png   # scaling in N and K
+    .venv/bin/python bench/bench_lm.py --agents 12 8 4 2 --batches 64 1 \\
+        --paths struct-C fused-C-sx fused-C --repeats 7           # Riccati kernel: before/after
 
 Games: ``N`` unicycles on a circle crossing to the opposite side (the construction of
 ``tests/helpers.crossing_spec``: goal, velocity, acceleration, turn rate, three soft
@@ -23,7 +25,9 @@ with ``map`` threads), ``struct`` (:class:`StructuredGN`, interpreted, one threa
 ``struct-C`` (:class:`StructuredGN` with generated C, one thread), ``fused`` and ``fused-C``
 (:class:`solvers.fast_gn.FusedGN`: the whole step as CasADi functions, interpreted or as
 generated C, one thread; ``fused x struct`` columns give their speed-up over the matching
-structured path), and the reference
+structured path; ``fused-C-sx`` and ``fused-C-kern`` are ``fused-C`` with the Riccati
+step's dense elimination forced to unrolled SX or to the C kernel, ``schur_kernel=False``
+or ``True``, where ``fused-C`` chooses by stage size), and the reference
 ``numpy``: J from the game's CasADi ``jacobian`` function (interpreted), ``r`` from
 ``residual``, then numpy ``J'J``, ``J'r``, Cholesky solve and ``energy``, one thread.
 Times are medians over repeats (the paths take turns within each repeat) of wall-clock
@@ -81,7 +85,17 @@ def _parse(argv=None):
         "--paths",
         nargs="+",
         default=["dense", "dense-thr", "struct", "struct-C", "fused", "fused-C", "numpy"],
-        choices=["dense", "dense-thr", "struct", "struct-C", "fused", "fused-C", "numpy"],
+        choices=[
+            "dense",
+            "dense-thr",
+            "struct",
+            "struct-C",
+            "fused",
+            "fused-C",
+            "fused-C-sx",
+            "fused-C-kern",
+            "numpy",
+        ],
     )
     ap.add_argument(
         "--cache-dir",
@@ -213,16 +227,19 @@ def main(args) -> int:
                 notes.append(
                     f"N={N}, K={K}: fused delegates to StructuredGN: {backends['fused'].fallback}"
                 )
-        if "fused-C" in args.paths:
+        for path, kern in (("fused-C", None), ("fused-C-sx", False), ("fused-C-kern", True)):
+            if path not in args.paths:
+                continue
             tc, cc, pc = time.perf_counter(), _child_cpu(), time.process_time()
-            fc = backends["fused-C"] = FusedGN(
-                game, threads=1, compiled=True, cache_dir=args.cache_dir
+            fc = backends[path] = FusedGN(
+                game, threads=1, compiled=True, cache_dir=args.cache_dir, schur_kernel=kern
             )
             notes.append(
-                f"N={N}, K={K}: fused-C libraries ready in {time.perf_counter() - tc:.1f} s wall, "
+                f"N={N}, K={K}: {path} libraries ready in {time.perf_counter() - tc:.1f} s wall, "
                 f"{_child_cpu() - cc:.1f} s compiler CPU (0: loaded from the cache), "
                 f"{time.process_time() - pc:.1f} s CPU in this process"
                 + (f"; delegates: {fc.fallback}" if fc.fallback else "")
+                + ("; Schur kernel in C" if getattr(fc, "schur_kernel", False) else "")
                 + (
                     f"; staged linearization, {fc.stage_groups} stage groups"
                     if fc.stage_groups
@@ -394,7 +411,15 @@ def table(rows, paths, threads, wall=True):
     if "numpy" in paths:
         head += [f"{p} x ref" for p in paths if p != "numpy"]
     pairs = [
-        (f, s) for f, s in (("fused", "struct"), ("fused-C", "struct-C")) if {f, s} <= set(paths)
+        (f, s)
+        for f, s in (
+            ("fused", "struct"),
+            ("fused-C", "struct-C"),
+            ("fused-C-sx", "struct-C"),
+            ("fused-C-kern", "struct-C"),
+            ("fused-C", "fused-C-sx"),
+        )
+        if {f, s} <= set(paths)
     ]
     head += [f"{f} x {s}" for f, s in pairs]
     head.append("max rel diff")

@@ -19,6 +19,12 @@ Cache
 compilers in parallel (one process per library, at most one per usable core): the fused
 Gauss-Newton backend compiles its linearization, solve and energy that way.
 
+:func:`compile_kernel` compiles hand-written C with CasADi's external-function interface
+(``-O3``, whatever ``optimize`` says) into an object file, linked into the libraries of
+the functions that call it (``objects``), and a shared library for ``casadi.external``:
+loops over dense blocks that the compiler vectorizes, where unrolled SX code would run
+one scalar instruction after the other (the fused backend's Riccati elimination).
+
 Keep what you compile small: residuals, partial Jacobians, stage functions. Compile time
 grows faster than linearly with the size of the expression graph: a symbolic dense ``J'J``
 of a 160-control game took minutes, the structured backend's functions
@@ -46,10 +52,12 @@ from epo_casadi.errors import EpoError, SpecError
 
 __all__ = [
     "AUTO_O1_LIMIT",
+    "KERNEL_FLAGS",
     "BufferCall",
     "CompilerError",
     "cache_dir",
     "compile_functions",
+    "compile_kernel",
     "compile_libraries",
     "find_compiler",
 ]
@@ -95,11 +103,18 @@ def _flags(funcs: Sequence[ca.Function], optimize: str) -> list[str]:
     if optimize == "auto":
         n = sum(f.n_instructions() for f in funcs)
         optimize = "-O1" if n <= AUTO_O1_LIMIT else "-O0"
-    if optimize not in ("-O0", "-O1", "-O2", "-O3", "-Os"):
+    # a level, then optionally code-generation flags ("-O3 -march=native -ffp-contract=off":
+    # the caller then keys the library's name by the CPU, solvers.fast_ilq does)
+    level, *extra = optimize.split() or [""]
+    if level not in ("-O0", "-O1", "-O2", "-O3", "-Os") or not all(
+        f[:2] in ("-f", "-m") for f in extra
+    ):
         raise SpecError(
-            "optimize", f"expected 'auto', '-O0', '-O1', '-O2', '-O3' or '-Os', got {optimize!r}"
+            "optimize",
+            "expected 'auto', '-O0', '-O1', '-O2', '-O3' or '-Os' (then optionally -f/-m "
+            f"flags), got {optimize!r}",
         )
-    return [optimize, "-fPIC", "-shared"]
+    return [level, *extra, "-fPIC", "-shared"]
 
 
 def compile_functions(
@@ -108,18 +123,21 @@ def compile_functions(
     directory: str | os.PathLike | None = None,
     *,
     optimize: str = "auto",
+    objects: Sequence[str | os.PathLike] = (),
 ) -> dict[str, ca.Function]:
     """Generate C for ``funcs``, compile (or reuse the cached library) and load them.
 
     ``name`` is the library's base name (a C identifier); the result maps each function's
     name to its compiled ``casadi.external`` counterpart. Function names must be unique.
-    See the module docstring for the cache and ``optimize``.
+    ``objects``: object files linked into the library (from :func:`compile_kernel`: the
+    hand-written C that ``funcs`` call through ``casadi.external``). See the module
+    docstring for the cache and ``optimize``.
     """
-    return compile_libraries([(funcs, name)], directory, optimize=optimize)[0]
+    return compile_libraries([(funcs, name, objects)], directory, optimize=optimize)[0]
 
 
 def compile_libraries(
-    libraries: Sequence[tuple[list[ca.Function], str]],
+    libraries: Sequence[tuple],
     directory: str | os.PathLike | None = None,
     *,
     optimize: str = "auto",
@@ -127,8 +145,12 @@ def compile_libraries(
     """:func:`compile_functions` for several libraries ``(funcs, name)`` at once: the C code
     is generated one library after the other, the compilers of the libraries missing from
     the cache run in parallel (one process each, at most as many as usable cores), then
-    every library is loaded. Returns one name-to-function dict per library, in order."""
-    plans = [_plan(list(funcs), name, directory, optimize) for funcs, name in libraries]
+    every library is loaded. An entry may be ``(funcs, name, objects)`` (see
+    :func:`compile_functions`). Returns one name-to-function dict per library, in order."""
+    plans = [
+        _plan(list(lb[0]), lb[1], directory, optimize, tuple(lb[2]) if len(lb) > 2 else ())
+        for lb in libraries
+    ]
     todo = [pl for pl in plans if not pl[-1].exists()]
     if todo:
         with contextlib.ExitStack() as stack:
@@ -157,6 +179,53 @@ def compile_libraries(
     return [{n: ca.external(n, str(pl[-1])) for n in pl[1]} for pl in plans]
 
 
+#: Flags of :func:`compile_kernel`: loops of hand-written C vectorize from ``-O3`` on (the
+#: instruction set is the compiler's default, so a shared cache works on any x86-64 machine).
+KERNEL_FLAGS = ("-O3", "-fno-math-errno", "-fPIC")
+
+
+def compile_kernel(
+    source: str, name: str, directory: str | os.PathLike | None = None
+) -> tuple[Path, Path]:
+    """Compile hand-written C ``source`` (cached): ``(shared library, object file)``.
+
+    The shared library is for ``casadi.external`` (a ``casadi.Function`` with the
+    source's name, called by other functions' graphs); the object file is linked into the
+    libraries of the functions that call it (``objects`` of :func:`compile_functions`),
+    whose generated C declares and calls the same symbol. Both are compiled with
+    :data:`KERNEL_FLAGS` whatever the ``optimize`` of the generated code, and cached as
+    ``<name>_<hash>.so`` / ``.o`` (hash of the compiler, flags and source).
+    """
+    if not name.isidentifier():
+        raise SpecError("name", f"expected a C identifier, got {name!r}")
+    cc = find_compiler()
+    h = hashlib.sha256()
+    for part in (os.path.basename(cc), " ".join(KERNEL_FLAGS), source):
+        h.update(part.encode())
+        h.update(b"\0")
+    folder = cache_dir(directory)
+    stem = folder / f"{name}_{h.hexdigest()[:20]}"
+    so, obj = stem.with_suffix(".so"), stem.with_suffix(".o")
+    if so.exists() and obj.exists():
+        return so, obj
+    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}_") as tmp:
+        src = os.path.join(tmp, f"{name}.c")
+        Path(src).write_text(source)
+        t_obj, t_so = os.path.join(tmp, f"{name}.o"), os.path.join(tmp, f"{name}.so")
+        for cmd in (
+            [cc, *KERNEL_FLAGS, "-c", "-o", t_obj, src],
+            [cc, "-shared", "-o", t_so, t_obj, "-lm"],
+        ):
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise CompilerError(
+                    f"compiling {name}.c failed ({' '.join(cmd)}):\n{done.stderr[-2000:]}"
+                )
+        os.replace(t_obj, obj)  # atomic, the object first: the .so marks a complete pair
+        os.replace(t_so, so)
+    return so, obj
+
+
 def _usable_cores() -> int:
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -164,9 +233,9 @@ def _usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _plan(funcs, name, directory, optimize):
+def _plan(funcs, name, directory, optimize, objects=()):
     """Checks, flags and the cache path of one library: ``(funcs, names, name, cc, flags,
-    lib)``."""
+    objects, lib)``."""
     if not funcs:
         raise SpecError("funcs", "expected at least one casadi.Function")
     for f in funcs:
@@ -177,10 +246,16 @@ def _plan(funcs, name, directory, optimize):
         raise SpecError("funcs", f"function names must be unique, got {names}")
     if not name.isidentifier():
         raise SpecError("name", f"expected a C identifier, got {name!r}")
+    objects = [str(o) for o in objects]
+    for o in objects:
+        if not Path(o).is_file():
+            raise SpecError("objects", f"expected compiled object files, {o!r} does not exist")
     cc = find_compiler()
     flags = _flags(funcs, optimize)
     h = hashlib.sha256()
-    for part in (ca.__version__, os.path.basename(cc), " ".join(flags)):
+    # objects from compile_kernel are named by the hash of their source and flags
+    names_o = [os.path.basename(o) for o in objects]
+    for part in (ca.__version__, os.path.basename(cc), " ".join(flags), *names_o):
         h.update(part.encode())
         h.update(b"\0")
     for f in funcs:
@@ -188,10 +263,10 @@ def _plan(funcs, name, directory, optimize):
         h.update(b"\0")
     folder = cache_dir(directory)
     lib = folder / f"{name}_{h.hexdigest()[:20]}.so"
-    return funcs, names, name, cc, flags, lib
+    return funcs, names, name, cc, flags, objects, lib
 
 
-def _generate(funcs, names, name, cc, flags, lib: Path, stack: contextlib.ExitStack):
+def _generate(funcs, names, name, cc, flags, objects, lib: Path, stack: contextlib.ExitStack):
     """Write the C file of one library into a temporary folder next to ``lib`` (removed
     when ``stack`` closes); returns the compiler command, its output file and ``lib``."""
     tmp = stack.enter_context(tempfile.TemporaryDirectory(dir=lib.parent, prefix=f".{name}_"))
@@ -201,7 +276,7 @@ def _generate(funcs, names, name, cc, flags, lib: Path, stack: contextlib.ExitSt
     cg.generate(tmp + os.sep)
     src = os.path.join(tmp, f"{name}.c")
     out = os.path.join(tmp, f"{name}.so")
-    return [cc, *flags, "-o", out, src, "-lm"], out, lib
+    return [cc, *flags, "-o", out, *objects, src, "-lm"], out, lib
 
 
 class BufferCall:

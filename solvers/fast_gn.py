@@ -35,6 +35,10 @@ take a staged form with the same arithmetic: ``K`` calls of one small SX functio
 (Riccati step, backward sweep, forward sweep; stage blocks are exchanged in one pattern
 for all stages), which compiles at ``-O1`` in a fraction of the time of the unrolled graph,
 while the interpreter runs the unrolled graph, where each call would cost a microsecond.
+From stage size :data:`SCHUR_KERNEL_MIN_STAGE_SIZE` on, the dense part of the Riccati step
+(Cholesky factor of the control block, ``Y``, the Schur complement ``P``) is hand-written C
+with loops the compiler vectorizes (:data:`SCHUR_KERNEL_C`, linked into ``fused_solve``),
+and only ``Q = H_k + FG_k' P FG_k`` stays an SX function of the stage.
 When the stage functions below have more than :data:`STAGED_MIN_INSTRUCTIONS` SX
 instructions in all (three or more unicycles at K = 40, two from K = 47; the left-turn
 game, with lanes: 188k in one graph), ``fused_linearize`` and ``energy`` are staged: each
@@ -54,12 +58,13 @@ Cost
     The unrolled graph grows with ``K (nz + m)^3`` scalar instructions; CasADi's SX virtual
     machine runs about 3 ns per instruction, generated C at ``-O1`` about 0.4 ns. Measured
     (``bench/bench_lm.py``, crossing game, K = 40, CPU per problem and step): generated C
-    is 4.5x (two agents), 3.5x (four), 3.2x (eight) and 2.7x (twelve) faster than
-    :class:`StructuredGN` with generated C in a batch of 64, 12x, 6x, 4x and 2.6x for one
+    is 5.8x (two agents), 3.7x (four), 4.8x (eight) and 6.0x (twelve) faster than
+    :class:`StructuredGN` with generated C in a batch of 64, 16x, 11x, 7x and 5.4x for one
     problem; interpreted it is 2 to 5x faster for one problem and 20 to 25 % slower in a
     batch of 64 (numpy amortizes its per-stage calls over the batch, the SX interpreter
-    does not). At twelve agents (d = 72) the Riccati stage function alone has 101k
-    instructions, 1.2 of the 1.6 ms of a step. Above :data:`MAX_STAGE_SIZE` (interpreted) or
+    does not). At twelve agents (d = 72) the Riccati stage as unrolled SX has 101k
+    instructions (29 us, 1.2 of the 1.6 ms of a step); with the C elimination it takes
+    about 10 us (``Q`` 3 us, the kernel 6.5 us with AVX2) and the step 0.77 ms. Above :data:`MAX_STAGE_SIZE` (interpreted) or
     :data:`MAX_STAGE_SIZE_COMPILED` (generated C), or when :class:`StructuredGN` itself
     falls back to the dense solve (short horizons, rows coupling many stages), the backend
     delegates to :class:`StructuredGN` and says why in :attr:`FusedGN.fallback`.
@@ -94,8 +99,11 @@ __all__ = [
     "MAX_STAGE_GROUPS",
     "MAX_STAGE_SIZE",
     "MAX_STAGE_SIZE_COMPILED",
+    "SCHUR_KERNEL_C",
+    "SCHUR_KERNEL_MIN_STAGE_SIZE",
     "STAGED_MIN_INSTRUCTIONS",
     "FusedGN",
+    "schur_kernel_source",
     "FusedLinearization",
 ]
 
@@ -107,7 +115,8 @@ __all__ = [
 MAX_STAGE_SIZE = 24
 #: The same limit with ``compiled=True``, where only the staged graphs are built (one SX
 #: function per stage): 12 unicycles (d = 72), the largest measured, whose Riccati step
-#: (101k instructions) takes 10 s of compiler CPU at ``-O1`` (d = 48: 32k instructions).
+#: (101k instructions) takes 10 s of compiler CPU at ``-O1`` (d = 48: 32k instructions) as
+#: SX; with the C elimination (:data:`SCHUR_KERNEL_MIN_STAGE_SIZE`) its SX part has 12k.
 MAX_STAGE_SIZE_COMPILED = 72
 #: The compiled backend uses the staged linearization when its stage functions have more
 #: SX instructions than this, summed over the stages (about 0.89 of the one-graph
@@ -120,6 +129,15 @@ STAGED_MIN_INSTRUCTIONS = 12_500
 #: Largest number of distinct stage functions of the staged linearization (compile time
 #: grows with it); a game with more falls back to the one-graph ``fused_linearize``.
 MAX_STAGE_GROUPS = 12
+#: From this stage size ``d = nz + m`` on, the compiled Riccati step eliminates the
+#: stage's controls (Cholesky factor of ``Q_uu + diag(D)``, ``Y = C^{-1} Q_uz``,
+#: ``P = Q_zz - Y'Y``: the dense part, about 90 % of the stage's instructions) in the
+#: hand-written C loops of :data:`SCHUR_KERNEL_C` (``-O3``, vectorized) instead of the
+#: unrolled SX graph; ``Q`` itself stays SX (it exploits the block-diagonal dynamics).
+#: Measured (crossing game, K = 40, CPU per problem and step, B = 64): d = 12 (two
+#: unicycles) 10 % slower with the kernel, so not used; d = 24 7 % faster; d = 48 and 72
+#: 1.4x and 2x faster, and the solve library compiles in less time.
+SCHUR_KERNEL_MIN_STAGE_SIZE = 24
 
 
 @dataclass
@@ -146,7 +164,10 @@ class FusedGN:
     cores). ``compiled``: generated C instead of CasADi's interpreter (needs a C compiler;
     compiled once per game structure and cached in ``cache_dir``). After construction
     :attr:`fallback` is ``None``, or a sentence saying why the backend delegates to
-    :class:`solvers.structured.StructuredGN` (:attr:`delegate`).
+    :class:`solvers.structured.StructuredGN` (:attr:`delegate`). ``schur_kernel``
+    (``compiled=True`` only): the Riccati step's dense elimination in hand-written C
+    (:data:`SCHUR_KERNEL_C`) instead of unrolled SX; ``None`` chooses by stage size
+    (:data:`SCHUR_KERNEL_MIN_STAGE_SIZE`). The numbers agree to rounding (1e-15).
     """
 
     def __init__(
@@ -155,8 +176,13 @@ class FusedGN:
         threads: int | None = None,
         compiled: bool = False,
         cache_dir: str | None = None,
+        schur_kernel: bool | None = None,
     ):
         check_stage_game(game)
+        if schur_kernel not in (None, True, False):
+            raise SpecError("schur_kernel", f"expected None, True or False, got {schur_kernel!r}")
+        if schur_kernel and not compiled:
+            raise SpecError("schur_kernel", "the C kernel needs compiled=True")
         self.game = game
         self.threads = threads
         self.compiled = bool(compiled)
@@ -193,6 +219,13 @@ class FusedGN:
             self._u_index = getattr(self.delegate, "_u_index", None)
             return
         self._u_index = _joint_u_index(game, L)
+        #: whether the compiled Riccati step runs the hand-written C elimination
+        self.schur_kernel = (
+            self.compiled and L.d >= SCHUR_KERNEL_MIN_STAGE_SIZE
+            if schur_kernel is None
+            else bool(schur_kernel)
+        )
+        self._kernel_objects: tuple = ()
         f_energy = game.function("energy")
         #: distinct stage functions of the staged linearization (0: the one-graph function)
         self.stage_groups = 0
@@ -213,7 +246,10 @@ class FusedGN:
             # fused_diag (ellipsoidal damping) only when first used
             tag = f"n{game.N}_k{game.K}"
             fs = [f_lin, f_solve, f_energy]
-            libs = compile_libraries([([f], f"epo_{f.name()}_{tag}") for f in fs], cache_dir)
+            objs = {"fused_solve": self._kernel_objects}  # the kernel's callers link it
+            libs = compile_libraries(
+                [([f], f"epo_{f.name()}_{tag}", objs.get(f.name(), ())) for f in fs], cache_dir
+            )
             f_lin, f_solve, f_energy = (lib[f.name()] for lib, f in zip(libs, fs, strict=True))
             self._later = {"sweep": f_sweep, "diag": f_diag}
         else:
@@ -476,10 +512,13 @@ class FusedGN:
 
         Ps, Hk = ca.SX.sym("P", nP), ca.SX.sym("H", nHu)
         Fk, Dk = ca.SX.sym("FG", nFv), ca.SX.sym("D", m)
-        Pn, C, Y = _riccati_stage(sym_P(Ps), self._stage_H(Hk), self._stage_FG(Fk), Dk, nz)
-        f_ric = ca.Function(
-            "fused_riccati_stage", [Ps, Hk, Fk, Dk], [lower_nz(Pn), self._pack(C, Y)]
-        )
+        if self.schur_kernel:
+            f_ric = self._riccati_stage_kernel(Ps, Hk, Fk, Dk)
+        else:
+            Pn, C, Y = _riccati_stage(sym_P(Ps), self._stage_H(Hk), self._stage_FG(Fk), Dk, nz)
+            f_ric = ca.Function(
+                "fused_riccati_stage", [Ps, Hk, Fk, Dk], [lower_nz(Pn), self._pack(C, Y)]
+            )
         HK = ca.SX.sym("HK", nHK)
         f_init = ca.Function(
             "fused_riccati_init", [HK], [lower_nz(ca.tril2symm(ca.SX(self._sp_H[1], HK)))]
@@ -546,6 +585,28 @@ class FusedGN:
             W, dg[k] = f_dstage(W, Hin[k * nHu : (k + 1) * nHu], F[k])
         f_diag = ca.Function("fused_diag", [Hin, Fin], [ca.vertcat(*dg)], ["H", "FG"], ["diag"])
         return f_solve, f_sweep, f_diag
+
+    def _riccati_stage_kernel(self, Ps, Hk, Fk, Dk) -> ca.Function:
+        """The Riccati step of :meth:`_build_solve_staged` with the dense elimination in C:
+        ``Q = tril(H_k + FG_k' P FG_k) + diag(0, D)`` as an SX function (packed lower
+        triangle), then :data:`SCHUR_KERNEL_C` (``P_k``, the packed factor ``(C_k, Y_k)``)
+        through ``casadi.external``; its object file is linked into ``fused_solve``."""
+        from .codegen import compile_kernel
+
+        L = self.layout
+        m, nz, d = L.m, L.nz, L.d
+        P = ca.tril2symm(ca.SX(ca.Sparsity.lower(nz), Ps))
+        FG = self._stage_FG(Fk)
+        Q = ca.tril(self._stage_H(Hk) + ca.mtimes(FG.T, ca.mtimes(P, FG)))
+        Q = Q + ca.diagcat(ca.SX(nz, nz), ca.diag(Dk))
+        lowd = [j * d + i for j in range(d) for i in range(j, d)]
+        f_q = ca.Function("fused_riccati_q", [Ps, Hk, Fk, Dk], [ca.densify(Q).nz[lowd]])
+        name, src = schur_kernel_source(m, nz)
+        so, obj = compile_kernel(src, name, self._cache_dir)
+        self._kernel_objects = (obj,)
+        kern = ca.external(name, str(so))
+        args = [ca.MX.sym(n, a.shape[0]) for n, a in zip("PHFD", (Ps, Hk, Fk, Dk), strict=True)]
+        return ca.Function("fused_riccati_stage", args, kern(f_q(*args)))
 
     def _sweeps(self, FGs: list, factor: list, bj: ca.SX) -> ca.SX:
         """``du`` (game order) from the stage factors ``(C_k, Y_k)`` and the right-hand side
@@ -628,6 +689,111 @@ def _joint_u_index(game: PotentialGame, L: StageLayout) -> np.ndarray:
         c = np.arange(game.nu[i])[None, :]
         out[:, uc[i] : uc[i + 1]] = int(game.uoff[i]) + k * game.nu[i] + c
     return out.reshape(-1)
+
+
+#: The dense elimination of one Riccati stage in C (:meth:`FusedGN._riccati_stage_kernel`),
+#: with the CasADi external-function interface; ``EPO_FN`` is replaced by the function's
+#: name and ``EPO_M`` (controls), ``EPO_NZ`` (augmented state) are defined before it.
+#: Input: the packed lower triangle (column-major) of ``Q`` (``d x d``, state first, the
+#: damping already on the control diagonal). Outputs: the packed lower triangle of
+#: ``P = Q_zz - Y'Y`` and the factor as :meth:`FusedGN._pack` orders it (lower ``C``, then
+#: ``vec(Y)``), ``C C' = Q_uu`` (Cholesky), ``Y = C^{-1} Q_uz``. Each loop runs over
+#: contiguous rows (``Y`` is held transposed), so ``-O3`` vectorizes it. With gcc 11 or
+#: later on x86-64 Linux it is compiled twice, for the baseline and for ``x86-64-v3``
+#: (AVX2, FMA), and the loader picks the one the CPU runs (``target_clones``), so a
+#: shared cache stays portable; the AVX2 version took 6.5 instead of 11 us per stage at
+#: d = 72 on this machine.
+SCHUR_KERNEL_C = r"""
+#include <math.h>
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) && \
+    defined(__linux__)
+#define EPO_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define EPO_CLONES
+#endif
+#define EPO_D (EPO_M + EPO_NZ)
+#define EPO_COL(n, j) ((j) * (n) - ((j) * ((j) - 1)) / 2) /* packed column offset */
+static const long long int EPO_FN_sp[3][3] = {
+    {EPO_D * (EPO_D + 1) / 2, 1, 1},
+    {EPO_NZ * (EPO_NZ + 1) / 2, 1, 1},
+    {EPO_M * (EPO_M + 1) / 2 + EPO_M * EPO_NZ, 1, 1}};
+int EPO_FN_n_in(void) { return 1; }
+int EPO_FN_n_out(void) { return 2; }
+const long long int* EPO_FN_sparsity_in(long long int i) { return i == 0 ? EPO_FN_sp[0] : 0; }
+const long long int* EPO_FN_sparsity_out(long long int i) {
+  return i == 0 || i == 1 ? EPO_FN_sp[i + 1] : 0;
+}
+EPO_CLONES int EPO_FN(const double** arg, double** res, long long int* iw, double* w,
+                      int mem) {
+  const double* q = arg[0];
+  double c[EPO_M][EPO_M];   /* c[j][i] = C(i, j), i >= j */
+  double yt[EPO_M][EPO_NZ]; /* yt[i][a] = Y(i, a) */
+  double col[EPO_NZ];
+  int i, j, k, a, b;
+  (void)iw;
+  (void)w;
+  (void)mem;
+  for (j = 0; j < EPO_M; ++j) {
+    const double* qj = q + EPO_COL(EPO_D, EPO_NZ + j) - (EPO_NZ + j);
+    for (i = j; i < EPO_M; ++i) c[j][i] = qj[EPO_NZ + i];
+  }
+  for (a = 0; a < EPO_NZ; ++a) {
+    const double* qa = q + EPO_COL(EPO_D, a) - a;
+    for (i = 0; i < EPO_M; ++i) yt[i][a] = qa[EPO_NZ + i];
+  }
+  for (j = 0; j < EPO_M; ++j) { /* Cholesky, left-looking */
+    for (k = 0; k < j; ++k) {
+      double s = c[k][j];
+      for (i = j; i < EPO_M; ++i) c[j][i] -= c[k][i] * s;
+    }
+    c[j][j] = sqrt(c[j][j]);
+    for (i = j + 1; i < EPO_M; ++i) c[j][i] /= c[j][j];
+  }
+  for (i = 0; i < EPO_M; ++i) { /* Y = C^{-1} Q_uz, all columns at once */
+    for (k = 0; k < i; ++k) {
+      double s = c[k][i];
+      for (a = 0; a < EPO_NZ; ++a) yt[i][a] -= yt[k][a] * s;
+    }
+    for (a = 0; a < EPO_NZ; ++a) yt[i][a] /= c[i][i];
+  }
+  for (b = 0; b < EPO_NZ; ++b) { /* P = Q_zz - Y'Y, column b from row b on */
+    const double* qb = q + EPO_COL(EPO_D, b) - b;
+    for (a = b; a < EPO_NZ; ++a) col[a] = qb[a];
+    for (i = 0; i + 3 < EPO_M; i += 4) {
+      double s0 = yt[i][b], s1 = yt[i + 1][b], s2 = yt[i + 2][b], s3 = yt[i + 3][b];
+      for (a = b; a < EPO_NZ; ++a)
+        col[a] -= yt[i][a] * s0 + yt[i + 1][a] * s1 + yt[i + 2][a] * s2 + yt[i + 3][a] * s3;
+    }
+    for (; i < EPO_M; ++i) {
+      double s = yt[i][b];
+      for (a = b; a < EPO_NZ; ++a) col[a] -= yt[i][a] * s;
+    }
+    if (res[0]) {
+      double* pb = res[0] + EPO_COL(EPO_NZ, b) - b;
+      for (a = b; a < EPO_NZ; ++a) pb[a] = col[a];
+    }
+  }
+  if (res[1]) {
+    double* f = res[1];
+    for (j = 0; j < EPO_M; ++j)
+      for (i = j; i < EPO_M; ++i) *f++ = c[j][i];
+    for (a = 0; a < EPO_NZ; ++a)
+      for (i = 0; i < EPO_M; ++i) *f++ = yt[i][a];
+  }
+  return 0;
+}
+"""
+
+
+def schur_kernel_source(m: int, nz: int) -> tuple[str, str]:
+    """Name and C source of :data:`SCHUR_KERNEL_C` for ``m`` controls and an augmented
+    state of ``nz`` entries (sizes are compile-time constants, so loops vectorize)."""
+    if min(m, nz) < 1:
+        raise SpecError("schur_kernel", f"expected m, nz >= 1, got m = {m}, nz = {nz}")
+    name = f"epo_schur_m{m}_nz{nz}"
+    return name, f"#define EPO_M {m}\n#define EPO_NZ {nz}\n" + SCHUR_KERNEL_C.replace(
+        "EPO_FN", name
+    )
 
 
 def _riccati_stage(P: ca.SX, H: ca.SX, FG: ca.SX, D: ca.SX, nz: int):

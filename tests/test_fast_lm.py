@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from epo_casadi import PotentialGame
+from epo_casadi.errors import SpecError
 from learning.layer import GameLayer
 from solvers.fast_gn import MAX_STAGE_SIZE, FusedGN, FusedLinearization
 from solvers.lm import DenseGN, LMOptions, _merge, make_backend, solve_lm
@@ -219,6 +220,7 @@ def test_compiled_equals_interpreted(tmp_path, name):
     assert (name == "double_integrator") == (fi._sizes()[2] == 0)
     fc = FusedGN(game, threads=1, compiled=True, cache_dir=str(tmp_path))
     assert fc.stage_groups == 0  # small: the one-graph linearization
+    assert not fc.schur_kernel  # small: the SX Riccati step
     libs = lambda: sorted(f.name.rsplit("_", 1)[0] for f in tmp_path.glob("epo_*.so"))  # noqa: E731
     # one library per function; the sweep and diag(J'J) only when first needed
     assert libs() == [f"epo_{f}_n2_k{game.K}" for f in ("energy", "fused_linearize", "fused_solve")]
@@ -282,6 +284,67 @@ def test_compiled_beyond_the_interpreted_stage_size(tmp_path, monkeypatch):
     for ell in (False, True):
         _close(fc.solve(lc, lam, -lc.gradient, ell), ref.solve(li, lam, -li.gradient, ell))
     _close(lc.diag_jtj(), li.diag_jtj())
+
+
+@pytest.mark.skipif(
+    not any(shutil.which(c) for c in ("gcc", "cc", "clang")), reason="no C compiler"
+)
+@pytest.mark.parametrize("m, nz", [(3, 5), (4, 8)])
+def test_schur_kernel_against_numpy(tmp_path, m, nz):
+    """The hand-written C elimination of one Riccati stage (Cholesky of Q_uu, Y = C^{-1}
+    Q_uz, P = Q_zz - Y'Y from the packed lower triangle of Q) against numpy's Cholesky and
+    solve; m = 3 leaves a remainder in the kernel's four-way unrolled update."""
+    import casadi as ca
+
+    from solvers.codegen import CompilerError, compile_kernel
+    from solvers.fast_gn import schur_kernel_source
+
+    name, src = schur_kernel_source(m, nz)
+    so, obj = compile_kernel(src, name, tmp_path)
+    assert so.exists() and obj.exists() and compile_kernel(src, name, tmp_path) == (so, obj)
+    f = ca.external(name, str(so))
+    d = m + nz
+    A = np.random.default_rng(13).normal(size=(d, d))
+    Q = A @ A.T + 0.5 * np.eye(d)
+    q = np.concatenate([Q[j:, j] for j in range(d)])  # packed lower, column-major
+    Pv, fac = (np.asarray(v).ravel() for v in f(q))
+    C = np.linalg.cholesky(Q[nz:, nz:])
+    Y = np.linalg.solve(C, Q[nz:, :nz])
+    P = Q[:nz, :nz] - Y.T @ Y
+    _close(Pv, np.concatenate([P[j:, j] for j in range(nz)]))
+    _close(fac[: m * (m + 1) // 2], np.concatenate([C[j:, j] for j in range(m)]))
+    _close(fac[m * (m + 1) // 2 :], Y.reshape(-1, order="F"))
+    with pytest.raises(CompilerError, match="epo_bad"):
+        compile_kernel("this is not C", "epo_bad", tmp_path)
+
+
+@pytest.mark.skipif(
+    not any(shutil.which(c) for c in ("gcc", "cc", "clang")), reason="no C compiler"
+)
+def test_schur_kernel_equals_the_unrolled_recursion(tmp_path):
+    """The compiled solve with the Riccati step's dense elimination in C (the default from
+    SCHUR_KERNEL_MIN_STAGE_SIZE on; forced here on a small game with active collisions, so
+    that it compiles in seconds) against the interpreted unrolled SX recursion and the
+    structured backend: steps with identity and ellipsoidal damping and a further
+    right-hand side on the kept factorization (the sweeps read the kernel's factor)."""
+    game = PotentialGame(head_on_spec(K=8))
+    fi, sb = FusedGN(game, threads=1), StructuredGN(game, threads=1)
+    fk = FusedGN(game, threads=1, compiled=True, cache_dir=str(tmp_path), schur_kernel=True)
+    assert fk.schur_kernel and fk.fallback is None
+    assert any(f.name.startswith("epo_schur_") for f in tmp_path.glob("*.o"))
+    U, P, lam = _batch(game, B=3, seed=12)
+    assert (collision_energy(game, U, P) > 0.1).all()  # active
+    li, lk, ls = fi.linearize(U, P), fk.linearize(U, P), sb.linearize(U, P)
+    for ell in (False, True):
+        step = fk.solve(lk, lam, -lk.gradient, ell)
+        _close(step, fi.solve(li, lam, -li.gradient, ell))
+        _close(step, sb.solve(ls, lam, -ls.gradient, ell))
+    rhs = np.random.default_rng(14).normal(size=U.shape)
+    _close(fk.solve(lk, lam, rhs, True), fi.solve(li, lam, rhs, True))
+    with pytest.raises(SpecError, match="schur_kernel"):
+        FusedGN(game, threads=1, schur_kernel=True)  # needs compiled=True
+    with pytest.raises(SpecError, match="schur_kernel"):
+        FusedGN(game, threads=1, compiled=True, schur_kernel="yes")
 
 
 def test_layer_gradcheck_with_the_fused_backend():
