@@ -17,15 +17,27 @@ acceleration and turn rate, pairwise collision at every step; unicycles, dt = 0.
 
 Every solve starts from zero controls (collision terms active on the way) and runs to the
 default tolerance ``max |a| <= 1e-5`` (``--tol`` changes it; ``--only-k100`` times only the
-3-player, 100-step game). Paths: ``numpy`` (Riccati recursion in numpy),
-``C`` (``compiled=True``: generated-C Riccati recursion, quadratization and rollout,
-compiled, or loaded from the disk cache, once before timing and reported as ``compile s``) and the reference ``LM``: the potential minimizer by
-:func:`solvers.lm.solve_lm` with the structured backend (interpreted), same start. The
-printed ratio is ``LM / C``. Times are wall-clock medians over repeats (paths take turns
-within each repeat), with the CPU time of the process (``time.process_time``) next to them
-(``cpu``: less sensitive to other jobs on a shared machine; ``compile cpu s`` includes the C
-compiler's child process), BLAS limited to one thread. Building the CasADi functions (once per
-game) is excluded and reported as ``build s``.
+3-player, 100-step game). Paths:
+
+* ``numpy``: the interpreted reference (Riccati recursion in numpy);
+* ``C``: ``compiled=True``, one generated-C call per line-search trial (rollout,
+  quadratization, Riccati recursion: :class:`solvers.fast_ilq.CompiledTrial`), built with
+  :data:`solvers.fast_ilq.OPTIMIZE`;
+* ``sep``: the compiled path as it was before the one-call trial, measured in the same
+  run: the same generated functions called one by one from Python (rollout, three
+  quadratization groups, Riccati), ``-O1`` (:func:`solvers.fast_ilq.compile_solver` with
+  ``trial=False``);
+* ``LM``: the potential minimizer by :func:`solvers.lm.solve_lm` with the structured
+  backend (interpreted), same start.
+
+Every path is compiled, or loaded from the disk cache, once before timing (``compile cpu
+s``: CPU of this process and of the C compiler, ``C`` only; ``--fresh-cache`` compiles into
+an empty cache folder, so it is the first-call figure). Times are medians over repeats
+(paths take turns within each repeat) of the CPU time of the process (``time.process_time``:
+less sensitive to other jobs on a shared machine than wall time, printed as ``wall``),
+BLAS limited to one thread. The ratios are ``sep / C`` and ``LM / C`` (CPU). The compiled
+paths must give the same controls as ``numpy`` (to 1e-8, checked). Building the CasADi
+functions (once per game) is excluded and reported as ``build s``.
 """
 
 from __future__ import annotations
@@ -57,7 +69,8 @@ from epo_casadi import (  # noqa: E402
     Velocity,
     VelocityBound,
 )
-from solvers.ilq import get_solver, solve_ilq  # noqa: E402
+from solvers import fast_ilq  # noqa: E402
+from solvers.ilq import ILQSolver, get_solver, solve_ilq  # noqa: E402
 from solvers.lm import LMOptions, solve_lm  # noqa: E402
 
 
@@ -108,15 +121,15 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
         t = time.perf_counter()
         solver = get_solver(game)
         build = time.perf_counter() - t
-        t, c0 = time.perf_counter(), os.times()
+        c0 = os.times()
         solver.compile()
-        compile_s = time.perf_counter() - t
         c1 = os.times()  # the C compiler runs in a child process
-        compile_cpu = (c1.user + c1.system + c1.children_user + c1.children_system) - (
-            c0.user + c0.system + c0.children_user + c0.children_system
-        )
+        compile_cpu = sum(c1[:4]) - sum(c0[:4])  # user, system, children user and system
+        sep = ILQSolver(game)  # the separate calls, -O1 (before the one-call trial)
+        fast_ilq.compile_solver(sep, optimize="-O1", trial=False)
         paths = {
             "numpy": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol}),
+            "sep": lambda s=sep, p=p: s.solve(p, options={"tol": tol, "compiled": True}),
             "C": lambda g=game, p=p: solve_ilq(g, p, options={"tol": tol, "compiled": True}),
         }
         if with_lm:
@@ -129,10 +142,11 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
             for k, f in paths.items():
                 t, c = time.perf_counter(), time.process_time()
                 last[k] = f()
-                times[k].append(time.perf_counter() - t)
                 cpu[k].append(time.process_time() - c)
+                times[k].append(time.perf_counter() - t)
         r_np, r_c = last["numpy"], last["C"]
         assert np.allclose(r_np.controls, r_c.controls, atol=1e-8), name
+        assert np.allclose(last["sep"].controls, r_c.controls, rtol=0, atol=1e-10), name
         row = {
             "game": name,
             "N": game.N,
@@ -140,17 +154,16 @@ def run(cases, repeats: int, with_lm: bool = True, tol: float = 1e-5):
             "iters": int(r_c.iterations),
             "status": r_c.status.value,
             "build s": build,
-            "compile s": compile_s,
             "compile cpu s": compile_cpu,
-            "numpy ms": _median_ms(times["numpy"]),
-            "numpy cpu ms": _median_ms(cpu["numpy"]),
-            "C ms": _median_ms(times["C"]),
-            "C cpu ms": _median_ms(cpu["C"]),
-            "C ms/iter": _median_ms(times["C"]) / max(int(r_c.iterations), 1),
+            "numpy ms": _median_ms(cpu["numpy"]),
+            "sep ms": _median_ms(cpu["sep"]),
+            "C ms": _median_ms(cpu["C"]),
+            "C wall ms": _median_ms(times["C"]),
+            "C ms/iter": _median_ms(cpu["C"]) / max(int(r_c.iterations), 1),
+            "sep / C": _median_ms(cpu["sep"]) / _median_ms(cpu["C"]),
         }
         if with_lm:
-            row["LM ms"] = _median_ms(times["LM"])
-            row["LM cpu ms"] = _median_ms(cpu["LM"])
+            row["LM ms"] = _median_ms(cpu["LM"])
             row["LM iters"] = int(last["LM"].iterations)
             row["LM / C"] = row["LM ms"] / row["C ms"]
         rows.append(row)
@@ -176,7 +189,14 @@ def main(argv=None):
     ap.add_argument("--tol", type=float, default=1e-5, help="iLQ tolerance on max |a|")
     ap.add_argument("--only-k100", action="store_true", help="only the N=3, K=100 game")
     ap.add_argument("--k100", action="store_true", help="add the N=3, K=100 game to --quick")
+    ap.add_argument(
+        "--fresh-cache", action="store_true", help="compile into an empty cache (first call)"
+    )
     a = ap.parse_args(argv)
+    if a.fresh_cache:
+        import tempfile
+
+        os.environ["EPO_CACHE_DIR"] = tempfile.mkdtemp(prefix="epo_bench_ilq_")
     repeats = 3 if a.quick else a.repeats
     cases = [
         ("rpi", rpi_game(40)),
@@ -188,8 +208,8 @@ def main(argv=None):
     if a.only_k100:
         cases = [("circle-3", circle_game(3, 100))]
     print(
-        f"iLQ game solver, median of {repeats} repeats (wall clock), start: zero controls, "
-        f"tol {a.tol:g}"
+        f"iLQ game solver, median CPU time of {repeats} repeats, start: zero controls, "
+        f"tol {a.tol:g}, compiled with {fast_ilq.OPTIMIZE!r}"
     )
     run(cases, repeats, with_lm=not a.no_lm, tol=a.tol)
 

@@ -11,10 +11,14 @@ Every solver solves it from zero controls with its default options. A row is ``o
 the solver says ``converged`` *and* a test computed here agrees: for LM, IPOPT and SQP the
 potential's gradient ``|dE/du|_inf <= 1e-4 (1 + |E|)`` (as in tests/test_defaults.py); for
 iLQ the sampled feedback-Nash check of :mod:`solvers.feedback_nash` passes. For iLQ the
-row also gives ``info["stop"]`` and, for ``stop = "kink"``, the width and kink arguments
-of the blended solution (docs/ilq.md, "Kinks"). It is a sweep, not a test: IPOPT builds
-an exact-Hessian NLP per game (seconds for N = 6) and iLQ takes up to 20 s on the
-hardest games, so the whole run takes several minutes on 2 shared cores.
+row also gives ``info["stop"]`` and, for a solve that stopped at a kink (``stop`` =
+``"kink"``, or ``"kink_equilibrium"`` when an equilibrium on the kink was certified), the
+width and kink arguments of the blended solution and what the search for an equilibrium
+on the kink found (docs/ilq.md, "Equilibria on a kink"). Every row gives wall and CPU
+seconds of the solve; the summary the CPU per solver and of the whole process. It is a
+sweep, not a test: IPOPT builds an exact-Hessian NLP per game (seconds for N = 6) and iLQ
+takes up to 40 s on the hardest games, so the whole run takes several minutes on 2 shared
+cores.
 """
 
 from __future__ import annotations
@@ -58,9 +62,9 @@ def run(name: str, args: tuple, solver: str) -> dict:
     layout, N, dyn, w, seed, jerk = args
     g = PotentialGame(family_spec(layout, N, dyn, w, seed, jerk=jerk))
     p = g.default_params()
-    t = time.perf_counter()
+    t, c0 = time.perf_counter(), time.process_time()
     r = SOLVE[solver](g, p)
-    dt = time.perf_counter() - t
+    dt, cpu = time.perf_counter() - t, time.process_time() - c0
     grad = float(np.abs(np.asarray(g.function("gradient")(r.controls, p))).max())
     rec = {
         "name": name,
@@ -70,6 +74,7 @@ def run(name: str, args: tuple, solver: str) -> dict:
         "energy": float(r.energy),
         "grad": grad,
         "time_s": round(dt, 3),
+        "cpu_s": round(cpu, 3),
     }
     if solver == "ilq":
         c = check_ilq_result(g, p, r)
@@ -83,6 +88,8 @@ def run(name: str, args: tuple, solver: str) -> dict:
         if r.info.get("kink_equilibrium"):
             k = r.info["kink_equilibrium"]
             rec["kink"] = {"width": k["width"], "kinks": k["kinks"]}
+            if k.get("equilibrium"):  # the search for an equilibrium on the kinks
+                rec["kink"]["equilibrium"] = k["equilibrium"]
         rec["ok"] = r.status is Status.CONVERGED and bool(c.ok)
     else:
         rec["stop"] = str(r.info.get("stop", r.info.get("return_status")))
@@ -102,6 +109,8 @@ def main(argv=None) -> None:
         ap.error(f"--solvers: unknown {bad}, expected some of {sorted(SOLVE)}")
     out = open(args.jsonl, "w") if args.jsonl else None  # noqa: SIM115
     ok = {s: 0 for s in solvers}
+    cpu = {s: 0.0 for s in solvers}  # CPU seconds of the solves (not the checks or builds)
+    c_start = time.process_time()
     fails: dict = {s: [] for s in solvers}
     n = 0
     for seed in range(*args.seeds):
@@ -110,12 +119,14 @@ def main(argv=None) -> None:
         for s in solvers:
             rec = run(name, spec, s)
             ok[s] += rec["ok"]
+            cpu[s] += rec["cpu_s"]
             if not rec["ok"]:
                 fails[s].append(f"{name} ({rec['status']}/{rec['stop']})")
             extra = f" stop={rec['stop']}" if s == "ilq" else ""
             print(
                 f"{name:42s} {s:6s} {rec['status']:10s} it={rec['iterations']:4d} "
-                f"E={rec['energy']:.4f} ok={rec['ok']} {rec['time_s']:.1f}s{extra}",
+                f"E={rec['energy']:.4f} ok={rec['ok']} {rec['time_s']:.1f}s cpu {rec['cpu_s']:.1f}s"
+                f"{extra}",
                 flush=True,
             )
             if out:
@@ -125,7 +136,11 @@ def main(argv=None) -> None:
         out.close()
     print()
     for s in solvers:
-        print(f"{s:6s} ok {ok[s]} / {n}" + (f"; not ok: {', '.join(fails[s])}" if fails[s] else ""))
+        print(
+            f"{s:6s} ok {ok[s]} / {n}, solve CPU {cpu[s]:.1f} s"
+            + (f"; not ok: {', '.join(fails[s])}" if fails[s] else "")
+        )
+    print(f"total CPU of this process {time.process_time() - c_start:.1f} s")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Generated-C quadratization for :mod:`solvers.ilq`: per-stage functions mapped over stages.
+"""Generated C for :mod:`solvers.ilq` (``compiled=True``): stage functions, one call per trial.
 
 :class:`solvers.ilq.ILQSolver` quadratizes the players' costs and linearizes the dynamics
 with one interpreted CasADi function over the whole trajectory (``ilq_quadratize``, about
@@ -15,10 +15,8 @@ graph itself, so it works for any stage-structured costs without knowing the fea
    the stage matrices. Stages whose functions serialize identically (same graph, same
    constants, same relative window) form one group: the middle stages are one group, the
    first and last stages a few more.
-3. Each group's function is mapped over its stages (``Function.map``, ``p`` shared) and all
-   groups are compiled into one library (:func:`solvers.codegen.compile_functions`,
-   ``-O1``, cached on disk by the functions' serialization: by the game's structure, never
-   by parameter values). A call gathers the stage windows with one numpy index per group.
+3. Each group's function is mapped over its stages (``Function.map``, ``p`` shared). A
+   call gathers the stage windows with one numpy index per group.
 
 The costs ``C`` and the energy ``E`` (needed once per linearization, for the result and the
 finiteness test): with the game's own costs, the residual rows go out with the stage of the
@@ -33,6 +31,18 @@ than :data:`MAX_GROUPS` distinct stage functions), :func:`build` returns ``None`
 solver keeps the interpreted function; :attr:`ILQSolver.quad_backend` says which is used.
 The arithmetic is the interpreted function's, operation for operation (the same SX graph),
 so the stage matrices agree to rounding (tested in ``tests/test_ilq_fast.py``).
+
+One call per line-search trial (:class:`CompiledTrial`, the game's own costs): the
+closed-loop rollout (:class:`CompiledRollout`), the stage groups on its windows, one index
+table from their outputs to the Riccati fold's inputs (what the numpy scatter into
+``Lam``/``Phi`` and the gather of ``_CompiledRiccati.backward`` did) and the fold itself, as
+one generated MX function around the same compiled SX functions: the separate calls'
+numbers bit for bit, with Python once per trial instead of five calls with numpy glue.
+
+:func:`compile_solver` compiles all of it into one library per game structure
+(``ilq_n<N>_k<K>_<cpu>``, cached on disk by the functions' serialization, never by
+parameter values) with :data:`OPTIMIZE`: ``-O3`` vector code for this CPU, FMA contraction
+off, so the numbers equal ``-O1``'s bit for bit (docs/ilq.md, "Benchmark").
 """
 
 from __future__ import annotations
@@ -40,12 +50,43 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-__all__ = ["MAX_GROUPS", "MAX_WINDOW", "CompiledQuadratize", "build"]
+from .codegen import BufferCall as _Call
+
+__all__ = [
+    "MAX_GROUPS",
+    "MAX_WINDOW",
+    "OPTIMIZE",
+    "CompiledQuadratize",
+    "CompiledRollout",
+    "CompiledTrial",
+    "build",
+    "compile_solver",
+]
 
 #: Largest distance (in stages) between a stage and a stage its outputs depend on.
 MAX_WINDOW = 2
 #: Largest number of distinct stage functions (compile time grows with it).
 MAX_GROUPS = 12
+#: gcc flags of the iLQ library (:func:`compile_solver`): vector code for this CPU at
+#: ``-O3``, without FMA contraction, so the numbers equal ``-O1``'s bit for bit. The
+#: library's name carries the CPU (:func:`_cpu_tag`): a cache shared by several machines
+#: never loads it on another CPU. A compiler that rejects the flags gets ``-O1``.
+OPTIMIZE = "-O3 -march=native -ffp-contract=off -fno-math-errno"
+
+
+def _cpu_tag() -> str:
+    """A short hash of this CPU's model and instruction-set flags (``/proc/cpuinfo``)."""
+    import hashlib
+    import platform
+
+    info = platform.machine() + platform.processor()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            lines = fh.read().split("\n\n")[0].splitlines()
+        info += "".join(ln for ln in lines if ln.split(":")[0].strip() in ("model name", "flags"))
+    except OSError:
+        pass
+    return hashlib.sha256(info.encode()).hexdigest()[:8]
 
 
 class CompiledQuadratize:
@@ -55,21 +96,24 @@ class CompiledQuadratize:
     :meth:`solvers.ilq.ILQSolver.quadratize`.
     """
 
-    def __init__(self, solver, groups, cost_fn, name: str, member=None, n_r: int = 0):
-        from .codegen import BufferCall as _Call
-        from .codegen import compile_functions
-
+    def __init__(self, solver, groups, cost_fn, member=None, n_r: int = 0):
         self.s = solver
-        funcs = [g["fn"] for g in groups]
-        lib = compile_functions(funcs, name, optimize="-O1")
+        self.fns = [g["fn"] for g in groups]  # mapped stage functions (compiled by attach)
+        self.spec = [(g["win"], g["segments"]) for g in groups]
         self.groups = []
-        for g in groups:
-            self.groups.append((_Call(lib[g["fn"].name()]), g["win"], g["segments"]))
         self.costs = None if cost_fn is None else _Call(cost_fn)
         self.member = member  # (N, n_r) 0/1: residual row in one of player i's terms
         self.r = np.zeros(n_r)
+        self.n_r = n_r
         self.n_groups = len(groups)
         self.n_instructions = [int(g["n_instr"]) for g in groups]
+
+    def attach(self, lib: dict) -> None:
+        """Use the compiled stage functions of ``lib`` (:func:`compile_solver`)."""
+        self.groups = [
+            (_Call(lib[f.name()]), win, seg)
+            for f, (win, seg) in zip(self.fns, self.spec, strict=True)
+        ]
 
     def __call__(self, X, U, p):
         s = self.s
@@ -87,7 +131,8 @@ class CompiledQuadratize:
 
 
 def build(solver, Xs, Us, p, C, E, lamv, phi_out, r_traj) -> CompiledQuadratize | None:
-    """Split ``solver``'s quadratization into stage groups and compile them (or ``None``)."""
+    """Split ``solver``'s quadratization into stage groups (or ``None``), not compiled yet:
+    :func:`compile_solver` compiles them with the rest and attaches the library."""
     K, N, n, nu, nx = solver.K, solver.N, solver.n, solver.nu, solver.nx
     if K < 2:
         return None
@@ -170,7 +215,6 @@ def build(solver, Xs, Us, p, C, E, lamv, phi_out, r_traj) -> CompiledQuadratize 
                 "n_instr": f.n_instructions(),
             }
         )
-    tag = f"ilq_quad_n{N}_k{K}"
     if n_r:
         g = solver.game
         member = np.zeros((N, n_r))
@@ -178,9 +222,9 @@ def build(solver, Xs, Us, p, C, E, lamv, phi_out, r_traj) -> CompiledQuadratize 
             for t in g.terms:
                 if a in t.agents:
                     member[i, t.rows] = 1.0
-        return CompiledQuadratize(solver, out, None, tag, member, n_r)
+        return CompiledQuadratize(solver, out, None, member, n_r)
     cost_fn = ca.Function("ilq_costs", [Xs, Us, p], [C, E], ["X", "U", "p"], ["C", "E"])
-    return CompiledQuadratize(solver, out, cost_fn, tag)
+    return CompiledQuadratize(solver, out, cost_fn)
 
 
 class CompiledRollout:
@@ -192,9 +236,6 @@ class CompiledRollout:
     """
 
     def __init__(self, solver):
-        from .codegen import BufferCall as _Call
-        from .codegen import compile_functions
-
         K, nx, nu, nxs, na = solver.K, solver.nx, solver.nu, solver.nxs, solver.na
         s = ca.SX.sym("s", nx + na)
         xr, ur = ca.SX.sym("xr", nx), ca.SX.sym("ur", nu)
@@ -209,9 +250,13 @@ class CompiledRollout:
             "ilq_roll_stage", [s, xr, ur, pa_c, eps], [ca.vertcat(x_next, dy_next), u]
         )
         acc = stage.mapaccum("ilq_roll", K, [0], [0])
-        acc = ca.Function("ilq_roll", acc.mx_in(), acc.call(acc.mx_in()))
-        self.call = _Call(compile_functions([acc], "ilq_roll", optimize="-O1")["ilq_roll"])
+        self.fn = ca.Function("ilq_roll", acc.mx_in(), acc.call(acc.mx_in()))
+        self.call = None
         self.K, self.nx, self.na = K, nx, na
+
+    def attach(self, lib: dict) -> None:
+        """Use the compiled fold of ``lib`` (:func:`compile_solver`)."""
+        self.call = _Call(lib["ilq_roll"])
 
     def __call__(self, x0, Xr, Ur, PA, eps):
         K, nx, na = self.K, self.nx, self.na
@@ -221,3 +266,152 @@ class CompiledRollout:
         X[0] = x0
         X[1:] = S.reshape(K, nx + na)[:, :nx]
         return X, U
+
+
+class CompiledTrial:
+    """One step of the iteration as one generated-C call: rollout, quadratization, Riccati.
+
+    ``(x0, Xr, Ur, PA, eps, p, mu0, delta) -> (X, U, PA', mu', r)``: the closed-loop rollout
+    from ``(Xr, Ur)`` with ``[P | a]`` and step ``eps`` (:class:`CompiledRollout`), the stage
+    functions of :class:`CompiledQuadratize` on its windows, their outputs gathered into the
+    Riccati fold's inputs (the numpy scatter into ``Lam``/``Phi`` and the gather of
+    :meth:`solvers.ilq._CompiledRiccati.backward`, as one index table), the fold, and the
+    residual rows ``r``. The same compiled functions on the same numbers as the separate
+    calls, so the results are bit-identical to them; Python makes one call per line-search
+    trial instead of five. ``PA = 0, eps = 0`` linearizes at ``(Xr, Ur)`` itself (the
+    rollout then reproduces ``Xr`` from ``x0`` and ``Ur``). Game costs only (the residual
+    rows give ``C`` and ``E``).
+    """
+
+    def __init__(self, solver, quad: CompiledQuadratize, roll: CompiledRollout, ric):
+        s = solver
+        K, N, n, nx, nu, nxs, na = s.K, s.N, s.n, s.nx, s.nu, s.nxs, s.na
+        self.s, self.quad = s, quad
+        x0 = ca.MX.sym("x0", nx)
+        Xr, Ur = ca.MX.sym("Xr", nx, K + 1), ca.MX.sym("Ur", nu, K)
+        PA = ca.MX.sym("PA", (nxs + 1) * nu, K)
+        eps, p = ca.MX.sym("eps"), ca.MX.sym("p", s.game.n_p)
+        mu0, delta = ca.MX.sym("mu0"), ca.MX.sym("delta")
+        S, U = roll.fn(ca.vertcat(x0, ca.MX.zeros(na)), Xr[:, :K], Ur, PA, ca.repmat(eps, 1, K))
+        X = ca.horzcat(x0, S[:nx, :])
+        v = ca.vertcat(ca.vec(U), ca.vec(X))  # = concat(U.ravel(), X.ravel()) numerically
+        # every written entry of Lam, Phi and r -> its place in the stacked group outputs
+        lam_pos = np.full(s.Lam.size, -1, dtype=np.intp)
+        phi_pos = np.full(s.Phi.size, -1, dtype=np.intp)
+        r_pos = np.full(quad.n_r, -1, dtype=np.intp)
+        dest = (lam_pos, phi_pos, r_pos)
+        outs, off = [], 0
+        for fn, (win, segments) in zip(quad.fns, quad.spec, strict=True):
+            m, w = win.shape
+            out = fn(ca.reshape(v[win.reshape(-1).tolist()], w, m), p)  # (n_out, m)
+            n_out = out.shape[0]
+            outs.append(ca.vec(out))
+            for b, lo, hi, tgt in segments:
+                pos = off + (np.arange(m)[:, None] * n_out + np.arange(lo, hi)[None, :])
+                dest[b][tgt] = pos.reshape(-1)  # later writes win, as in the numpy scatter
+            off += m * n_out
+        zero = off  # a zero appended: entries no stage function writes stay zero in Lam
+        allout = ca.vertcat(*outs, ca.MX.zeros(1))
+
+        def take(pos):
+            pos = np.where(pos < 0, zero, pos)
+            return allout[pos.reshape(-1).tolist()]
+
+        m1, n_stage = nxs + 1, K * N * n * n
+        t = s._term
+        # terminal values Z_iK = Lam_K[(x, 1), (x, 1)], column-major per player
+        zi = n_stage + (np.arange(N)[:, None, None] * n + t[None, None, :]) * n + t[None, :, None]
+        Zc = ca.reshape(take(lam_pos[zi]), m1, N * m1)
+        rev = np.arange(K - 1, -1, -1)
+        lam = ca.reshape(take(lam_pos[rev[:, None] * (N * n * n) + ric._lam_cols[None]]), -1, K)
+        phi_idx = rev[:, None] * (m1 * n) + ric._phi_cols[None]
+        phi = ca.reshape(take(phi_pos[phi_idx]), -1, K)
+        _, PAr, mur = ric.acc(Zc, lam, phi, ca.repmat(mu0, 1, K), ca.repmat(delta, 1, K))
+        PAo, muo = PAr[:, rev.tolist()], mur[:, rev.tolist()]
+        r = take(r_pos) if quad.n_r else ca.MX(0, 1)
+        self.fn = ca.Function(
+            "ilq_trial",
+            [x0, Xr, Ur, PA, eps, p, mu0, delta],
+            [X, U, PAo, muo, r],
+            ["x0", "Xr", "Ur", "PA", "eps", "p", "mu0", "delta"],
+            ["X", "U", "PA_out", "mu", "r"],
+        )
+        self.call = None
+
+    def attach(self, lib: dict) -> None:
+        """Use the compiled function of ``lib`` (:func:`compile_solver`): its buffers are
+        bound once to preallocated arrays (a call copies the inputs in, no allocation)."""
+        f = self.call = lib["ilq_trial"]
+        self._buf, self._ev = f.buffer()
+        self._in = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+        self._out = [np.empty(f.nnz_out(i)) for i in range(f.n_out())]
+        for i, a in enumerate(self._in):
+            self._buf.set_arg(i, memoryview(a))
+        for i, o in enumerate(self._out):
+            self._buf.set_res(i, memoryview(o))
+
+    def __call__(self, p, Xr, Ur, PA, eps, mu0, delta):
+        """``(X, U, C, E, PA, mu, ok)``: the trial trajectory and the linearization there,
+        as :meth:`solvers.ilq.ILQSolver.rollout`, ``quadratize`` and ``backward`` give them.
+        ``PA = None``: linearize at ``(Xr, Ur)`` (a rollout of ``Ur``)."""
+        s = self.s
+        K, nx, nu = s.K, s.nx, s.nu
+        i_x0, i_X, i_U, i_PA, i_eps, i_p, i_mu, i_d = self._in
+        np.take(p, s._x0_idx, out=i_x0)
+        i_X[:] = Xr.reshape(-1)
+        i_U[:] = Ur.reshape(-1)
+        if PA is None:
+            i_PA.fill(0.0)
+            i_eps[0] = 0.0
+        else:
+            i_PA[:] = PA.reshape(-1)
+            i_eps[0] = eps
+        i_p[:] = p
+        i_mu[0], i_d[0] = mu0, delta
+        self._ev()
+        o_X, o_U, o_PA, o_mu, r = self._out
+        X = o_X.reshape(K + 1, nx).copy()
+        U = o_U.reshape(K, nu).copy()
+        PAo = o_PA.reshape(K, nu, s.nxs + 1).copy()
+        mu = o_mu.reshape(K, s.N).copy()
+        r2 = r * r
+        C, E = 0.5 * (self.quad.member @ r2), 0.5 * float(np.sum(r2))
+        ok = bool(np.isfinite(PAo).all())
+        if not ok:  # singular stage: as _CompiledRiccati.backward, numpy with larger shifts
+            self.quad(X, U, p)  # fills Lam and Phi
+            PAo, mu, ok = s._numpy_backward(mu0, delta)
+        return X, U, C, E, PAo, mu, ok
+
+
+def compile_solver(solver, optimize: str | None = None, trial: bool = True) -> None:
+    """Build and compile every generated-C path of ``solver`` as one library.
+
+    Sets ``solver._compiled`` (the Riccati fold), ``_croll`` (the rollout), ``_cquad`` (the
+    stage-split quadratization, or ``None``: :func:`build`) and ``_ftrial``
+    (:class:`CompiledTrial`, with the game's own costs only, else ``None``). One library
+    ``ilq_n<N>_k<K>_<cpu>``, compiled with ``optimize`` (default :data:`OPTIMIZE`; ``-O1``
+    when the compiler rejects it) and cached on disk by the functions' serialization.
+    ``trial=False`` leaves the one-call trial out (the separate calls: a benchmark's
+    reference, ``bench/bench_ilq.py``).
+    """
+    from .codegen import CompilerError, compile_functions
+    from .ilq import _CompiledRiccati
+
+    ric = _CompiledRiccati(solver, compile_now=False)
+    quad = build(solver, *solver._quad_sym)
+    roll = CompiledRollout(solver)
+    funcs = [ric.acc, roll.fn] + ([] if quad is None else quad.fns)
+    ftrial = None
+    if trial and quad is not None and quad.costs is None:
+        ftrial = CompiledTrial(solver, quad, roll, ric)
+        funcs.append(ftrial.fn)
+    name = f"ilq_n{solver.N}_k{solver.K}"
+    try:
+        lib = compile_functions(funcs, f"{name}_{_cpu_tag()}", optimize=optimize or OPTIMIZE)
+    except CompilerError:  # a compiler without these flags: the portable -O1 build
+        lib = compile_functions(funcs, name, optimize="-O1")
+    for part in (ric, roll, quad, ftrial):
+        if part is not None:
+            part.attach(lib)
+    solver._compiled, solver._croll, solver._cquad, solver._ftrial = ric, roll, quad, ftrial
+    solver.quad_backend = "interpreted" if quad is None else "compiled"

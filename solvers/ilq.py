@@ -71,7 +71,12 @@ One iteration, around the current trajectory ``(X, U)`` (rolled out, so feasible
     the one-sided curvatures give different gains, so no exact-kink iterate nearby has
     ``a = 0``. The blended solution is returned (``info['kink_equilibrium']``: width, kink
     arguments, blended policy and a message; ``P``, ``a`` and ``stationarity`` at the exact
-    kinks).
+    kinks). With ``kink_equilibrium`` (the default) the solver then looks for an
+    equilibrium *on* the kinks (:meth:`ILQSolver._kink_equilibrium`): curvatures
+    ``theta_j^2``, ``theta_j in [0, 1]`` (the hinge's generalized Hessian), and a trajectory
+    with those kink arguments at 0 and ``max |a| <= tol``, whose policy passes the
+    feedback-Nash check (:mod:`solvers.feedback_nash`); found, the result is ``CONVERGED``
+    with ``info['stop'] = 'kink_equilibrium'`` and that point's policy.
 
     The iteration stops when ``max |a| <= tol`` at the requested regularization (status
     ``CONVERGED``; ``STALLED`` when no step passes the line search up to the regularization
@@ -128,9 +133,11 @@ Speed
     recursion as one stage function folded over the horizon (``Function.mapaccum``; a
     singular stage falls back to numpy), the rollout likewise, and the quadratization as
     stage functions found from the graph and mapped over the stages
-    (:mod:`solvers.fast_ilq`). The compiled path equals the interpreted one to rounding
-    (``tests/test_ilq_fast.py``); it is an option, not the default, because the first
-    call of each structure compiles for about 1 to 5 s (docs/ilq.md).
+    (:mod:`solvers.fast_ilq`); with the game's costs one generated call per line-search
+    trial runs all three (``fast_ilq.CompiledTrial``). The compiled path equals the
+    interpreted one to rounding (``tests/test_ilq_fast.py``); it is an option, not the
+    default, because the first call of each structure compiles for about 1.5 to 10 s
+    (``-O3`` vector code; docs/ilq.md).
 """
 
 from __future__ import annotations
@@ -198,6 +205,10 @@ class ILQOptions:
     #: costs, solve once more from the open-loop equilibrium (LM on the potential from the
     #: same start), within the same max_iter; kept if it converges or stops at a kink
     restart: bool = True
+    #: when a solve stops at a kink ('kink'), look for an equilibrium on it: kink curvatures
+    #: from the generalized Hessian that give a = 0 with the kink arguments at 0, whose
+    #: policy passes the feedback-Nash check; 'converged' if found (docs/ilq.md)
+    kink_equilibrium: bool = True
     compiled: bool = False  #: per-stage work as generated C (needs a C compiler; cached on disk)
 
     def __post_init__(self):
@@ -247,13 +258,22 @@ class ILQOptions:
             raise SpecError("ilq.compiled", f"expected True or False, got {self.compiled!r}")
         if not isinstance(self.restart, bool):
             raise SpecError("ilq.restart", f"expected True or False, got {self.restart!r}")
+        if not isinstance(self.kink_equilibrium, bool):
+            raise SpecError(
+                "ilq.kink_equilibrium", f"expected True or False, got {self.kink_equilibrium!r}"
+            )
 
 
 # --------------------------------------------------------------------------------------
 # layout helpers
 # --------------------------------------------------------------------------------------
 def _stage_index(game: PotentialGame):
-    """Index arrays: flat x -> (K+1, nx) and flat u -> (K, nu)."""
+    """Index arrays: flat x -> (K+1, nx) and flat u -> (K, nu) (read-only, cached on the
+    game: every solve converts its start and result)."""
+    return game.cached(("ilq_stage_index",), lambda: _make_stage_index(game))
+
+
+def _make_stage_index(game: PotentialGame):
     K = game.K
     xi = np.concatenate(
         [
@@ -269,7 +289,10 @@ def _stage_index(game: PotentialGame):
         ],
         axis=1,
     )
-    return xi.astype(np.intp), ui.astype(np.intp)
+    xi, ui = xi.astype(np.intp), ui.astype(np.intp)
+    xi.setflags(write=False)
+    ui.setflags(write=False)
+    return xi, ui
 
 
 def to_stages(game: PotentialGame, x: np.ndarray | None = None, u: np.ndarray | None = None):
@@ -344,9 +367,13 @@ class ILQSolver:
         self._compiled: _CompiledRiccati | None = None
         self._cquad = None  # solvers.fast_ilq.CompiledQuadratize after compile(), if it applies
         self._croll = None  # solvers.fast_ilq.CompiledRollout after compile()
+        self._ftrial = None  # solvers.fast_ilq.CompiledTrial after compile(), game costs only
+        self._grad = None  # the potential's gradient (result's grad_norm), on first use
         self.quad_backend = "interpreted"  #: quadratization used with compiled=True
         self.kink_width = 0.0  #: blend width of the kinks' curvature in the current solve
         self._kink_quad = None  # (quadratize, kinks) with blended kinks; False: no kinks
+        self.kink_pins = None  #: per-kink slopes (>= 0: pinned, < 0: blended) or None
+        self._pin_quad = None  # quadratize(X, U, p, w, s), built on first need
 
     @property
     def has_kinks(self) -> bool:
@@ -364,19 +391,21 @@ class ILQSolver:
         (zk,) = self._kink_quad[1](X, U, p)
         return int(np.count_nonzero(np.abs(zk) < 0.5 * width))
 
-    def _build_kink_quad(self):
+    def _build_kink_quad(self, pinned: bool = False):
         """``(quadratize(X, U, p, w), kinks(X, U, p))`` with the kinks' curvature blended over
         ``w`` (:func:`_smooth_kinks`), or ``None``. Same outputs as ``ilq_quadratize``: the
         gradients, costs, energy and dynamics are exact, only the Hessian blocks change (on
-        the exact blocks' sparsity)."""
+        the exact blocks' sparsity). ``pinned``: ``quadratize(X, U, p, w, s)``, kink ``j``
+        with ``s_j >= 0`` at Gauss-Newton curvature ``s_j^2`` (equilibria on a kink)."""
         if self.hessian != "gauss_newton":
             return None
-        smooth = _smooth_kinks(self.game.function("traj_residual"))
+        smooth = _smooth_kinks(self.game.function("traj_residual"), pinned=pinned)
         if smooth is None:
             return None
         Xs, Us, p, x_flat, u_flat, z, C, E, grads, player_rows, hess_sel, phi_out = self._blend_sym
         w = ca.SX.sym("w")
-        rb, zk = smooth(x_flat, u_flat, p, w)
+        s_in = [ca.SX.sym("s", smooth.size1_in(smooth.n_in() - 1))] if pinned else []
+        rb, zk = smooth(x_flat, u_flat, p, w, *s_in)
         outs = []
         for grad, rows_i, (sp, sel) in zip(grads, player_rows, hess_sel, strict=True):
             outs.append(ca.densify(grad))
@@ -387,7 +416,7 @@ class ILQSolver:
                 H = ca.SX(sp)
             outs.append(H.nz[sel.tolist()] if sel.size else ca.SX(0, 1))
         quad = ca.Function(
-            "ilq_quadratize_kinks", [Xs, Us, p, w], [C, E, ca.vertcat(*outs), phi_out]
+            "ilq_quadratize_kinks", [Xs, Us, p, w, *s_in], [C, E, ca.vertcat(*outs), phi_out]
         )
         kinks = ca.Function("ilq_kinks", [Xs, Us, p], [zk])
         return _Call(quad), _Call(kinks)
@@ -636,7 +665,9 @@ class ILQSolver:
         ``compiled``: with the generated-C stage functions when :meth:`compile` built them
         (:mod:`solvers.fast_ilq`), else the interpreted trajectory function.
         """
-        if self.kink_width > 0:  # blended kinks (interpreted; only after a failed search)
+        if self.kink_pins is not None:  # kinks at given slopes (an equilibrium on a kink)
+            C, E, lam, phi = self._pin_quad(X, U, p, self.kink_width, self.kink_pins)
+        elif self.kink_width > 0:  # blended kinks (interpreted; only after a failed search)
             C, E, lam, phi = self._kink_quad[0](X, U, p, self.kink_width)
         elif compiled and self._cquad is not None:
             return self._cquad(X, U, p)
@@ -645,6 +676,14 @@ class ILQSolver:
         self.Lam[self._lam_tgt] = lam[self._lam_src]
         self.Phi.reshape(-1)[self._phi_tgt] = phi
         return C.copy(), float(E[0])
+
+    def _trial_fn(self, compiled: bool):
+        """The one-call trial (rollout, quadratization, Riccati: :class:`solvers.fast_ilq.
+        CompiledTrial`) where :meth:`quadratize` would use the compiled stage functions with
+        the game's costs, else ``None``."""
+        if compiled and self.kink_pins is None and self.kink_width <= 0:
+            return self._ftrial
+        return None
 
     def _own_shift(self, T, delta):
         """Shift per player so that its own block ``T_i[u_i, u_i]`` has pivots >= delta.
@@ -734,10 +773,7 @@ class ILQSolver:
         if self._compiled is None:
             from . import fast_ilq
 
-            self._compiled = _CompiledRiccati(self)
-            self._cquad = fast_ilq.build(self, *self._quad_sym)
-            self._croll = fast_ilq.CompiledRollout(self)
-            self.quad_backend = "interpreted" if self._cquad is None else "compiled"
+            fast_ilq.compile_solver(self)  # one library; also the one-call trial (_ftrial)
         return self
 
     # ---- the solve ------------------------------------------------------------------------
@@ -804,14 +840,20 @@ class ILQSolver:
         mu0, delta = float(opts.regularization), float(opts.min_curvature)
         mu_run = mu0  # raised 10x when a backward or forward pass fails, lowered after success
 
-        def linearize(X, U):
-            C, E = self.quadratize(X, U, p, opts.compiled)
-            PA, mu, ok = backward(mu_run, delta)
-            res = float(np.max(np.abs(PA[:, :, -1]))) if self.K else 0.0
+        def linearize(X, U, lin=None):
+            if lin is not None:  # computed by the one-call trial (solvers.fast_ilq)
+                C, E, PA, mu, ok = lin
+            elif self._trial_fn(opts.compiled) is not None:
+                C, E, PA, mu, ok = self._ftrial(p, X, U, None, 0.0, mu_run, delta)[2:]
+            else:
+                C, E = self.quadratize(X, U, p, opts.compiled)
+                PA, mu, ok = backward(mu_run, delta)
+            a = np.ascontiguousarray(PA[:, :, -1])  # gathered once (feed-forward terms)
+            res = float(np.max(np.abs(a))) if self.K else 0.0
             finite = ok and math.isfinite(res) and bool(np.isfinite(C).all())
             # RMS of a; math.fsum is exactly rounded, so the merit (and every accept/reject
             # decision) does not depend on summation order, SIMD alignment or BLAS threads
-            a2 = (PA[:, :, -1] ** 2).ravel().tolist()
+            a2 = (a * a).ravel().tolist()
             merit = math.sqrt(math.fsum(a2) / len(a2)) if a2 else 0.0
             return C, E, PA, mu, res if finite else math.inf, merit if finite else math.inf
 
@@ -889,14 +931,18 @@ class ILQSolver:
             eps, accepted = eps_next, None
             a_old = PA[:, :, -1]
             for _trial in range(opts.max_backtracks + 1):
+                ft, flin = self._trial_fn(opts.compiled), None
                 with np.errstate(all="ignore"):
-                    Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps, opts.compiled)
+                    if ft is not None and opts.line_search == "residual":
+                        Xn, Un, *flin = ft(p, Xbar, Ubar, PA, eps, mu_run, delta)
+                    else:
+                        Xn, Un = self.rollout(p, Xbar, Ubar, PA, eps, opts.compiled)
                     good = bool(np.isfinite(Xn).all() and np.isfinite(Un).all())
                     if good and opts.max_state_step < math.inf:
                         good = float(np.max(np.abs(Xn - Xbar))) <= opts.max_state_step
                 lin = None
                 if good and opts.line_search == "residual":
-                    lin = linearize(Xn, Un)
+                    lin = linearize(Xn, Un, flin)
                     good = lin[5] <= (1.0 - _ARMIJO * eps) * ref
                 if good:
                     accepted = (Xn, Un, lin, eps)
@@ -971,7 +1017,7 @@ class ILQSolver:
             X1, U1, w, res_w = on_kink
             self.kink_width = w
             (zk,) = self._kink_quad[1](X1, U1, p)
-            z = np.asarray(zk, float).ravel()
+            z = np.array(zk, float).ravel()
             sel = np.flatnonzero(np.abs(z) < 0.5 * w)
             kink_info = {
                 "width": w,
@@ -995,12 +1041,25 @@ class ILQSolver:
             kink_info["feedforward"] = PAw[:, :, self.nxs].copy()
             self.kink_width = 0.0
             C, E, PA, mu, res, merit = linearize(X1, U1)
+            kink_info["exact_stationarity"] = res
+            kink_info["certified"] = False
+            if opts.kink_equilibrium:  # an equilibrium on the kink (docs/ilq.md)
+                theta = np.clip([t for _, _, t in kink_info["kinks"]], 0.0, 1.0)
+                eq = self._kink_equilibrium(p, U1, sel, theta, opts, backward)
+                kink_info["equilibrium"] = _kink_summary(eq, opts.tol)
+                it += eq["iterations"]  # the pinned solves' iterations
+                if eq["ok"]:
+                    kink_info["certified"] = True
+                    kink_info["message"] = kink_info["equilibrium"]["message"]
+                    Xbar, Ubar = eq["X"], eq["U"]
+                    C, E, PA, mu, res = eq["C"], eq["E"], eq["PA"], eq["mu"], eq["stationarity"]
+                    status, stop = Status.CONVERGED, "kink_equilibrium"
         x, u = from_stages(g, Xbar, Ubar)
         grad_norm = math.nan
         if not self.custom_costs:
-            grad_norm = (
-                float(np.max(np.abs(np.asarray(g.function("gradient")(u, p))))) if g.n_u else 0.0
-            )
+            if self._grad is None:  # buffers bound once (a plain call converts to DM)
+                self._grad = _Call(g.function("gradient"))
+            grad_norm = float(np.max(np.abs(self._grad(u, p)[0]))) if g.n_u else 0.0
         return SolveResult(
             solver="ilq",
             controls=u,
@@ -1032,6 +1091,96 @@ class ILQSolver:
             },
         )
 
+    def _kink_equilibrium(self, p, U1, sel, theta, opts, backward) -> dict:
+        """An equilibrium on the kinks ``sel`` near the blended solution ``U1`` (stages).
+
+        Pinned solves (:attr:`kink_pins`: kink ``j`` of ``sel`` at Gauss-Newton curvature
+        ``theta_j^2``, the other kinks exact, to ``tol / 100``) and Newton steps on
+        ``theta`` (:func:`_kink_newton`) until every ``|z_j| <= 1e-2 min(kink_widths)``
+        (at most ``_PIN_BUDGET`` pinned iterations); then ``max |a|`` with those curvatures at the
+        requested regularization and the feedback-Nash check of the policy
+        (:mod:`solvers.feedback_nash`). A dict: ``ok`` and the figures, or ``ok = False``
+        and a ``reason`` when no such point was found (docs/ilq.md, "Equilibria on a
+        kink")."""
+        from .feedback_nash import feedback_nash_check
+
+        g = self.game
+        if self._pin_quad is None:
+            self._pin_quad = self._build_kink_quad(pinned=True)[0]
+        zfun = self._kink_quad[1]
+        m = int(zfun.f.size1_out(0))
+        ztol = 1e-2 * min(opts.kink_widths)
+        sub = dataclasses.replace(
+            opts, kink_widths=(), restart=False, tol=1e-2 * opts.tol, max_iter=_PIN_ITER
+        )
+        total = 0
+
+        def pinned(sel, th, u):
+            nonlocal total
+            if total >= _PIN_BUDGET:
+                raise _KinkBudget
+            pins = np.full(m, -1.0)
+            pins[sel] = th
+            self.kink_pins = pins
+            try:
+                r = self._solve_once(p, u, sub, backward, sub.max_iter, time.perf_counter())
+            finally:
+                self.kink_pins = None
+            total += int(r.iterations)
+            X, U = to_stages(g, r.states, r.controls)
+            (zk,) = zfun(X, U, p)
+            ok = r.status is Status.CONVERGED
+            return r, np.asarray(zk, float).ravel()[sel], ok
+
+        sel = np.asarray(sel, int).copy()
+        try:
+            found = _kink_newton(pinned, sel, theta, from_stages(g, None, U1)[1], ztol)
+        except _KinkBudget:
+            found = f"the pinned solves used up {_PIN_BUDGET} iterations"
+        if not isinstance(found, tuple):
+            why = found or (
+                "a pinned solve failed, or the Newton steps on theta did not bring the kink "
+                f"arguments to |z| <= {ztol:g}"
+            )
+            return {"ok": False, "iterations": total, "reason": why}
+        r, sel, th, z = found
+        # max |a| with those curvatures at the requested regularization (a fresh pass)
+        X, U = to_stages(g, r.states, r.controls)
+        self.kink_pins = np.full(m, -1.0)
+        self.kink_pins[sel] = th
+        try:
+            C, E = self.quadratize(X, U, p, opts.compiled)
+            PA, mu, fin = backward(float(opts.regularization), float(opts.min_curvature))
+        finally:
+            self.kink_pins = None
+        res = float(np.max(np.abs(PA[:, :, -1]))) if self.K else 0.0
+        check = feedback_nash_check(
+            g,
+            p,
+            r.states,
+            r.controls,
+            PA[:, :, : self.nx],
+            PA[:, :, self.nxs],
+            gains_prev=PA[:, :, self.nx : self.nxs],
+            prev_variables=self.aug,
+        )
+        return {
+            "ok": bool(fin and res <= opts.tol and check.ok),
+            "result": r,
+            "X": X,
+            "U": U,
+            "C": C,
+            "E": E,
+            "PA": PA,
+            "mu": mu,
+            "stationarity": res,
+            "kinks": sel,
+            "theta": th,
+            "z": z,
+            "iterations": total,
+            "check": check,
+        }
+
     def _numpy_backward(self, mu0, delta):
         compiled, self._compiled = self._compiled, None
         try:
@@ -1046,9 +1195,14 @@ _RESTART_STOPS = ("line_search", "regularized_only")  # stalled solves that rest
 _MAX_RESETS = 2  # returns to the requested regularization before a solve is called stalled
 _MIN_STEP = 1e-2  # smallest first trial step the secant predicts (relative to step_size)
 _ARMIJO = 0.1  # sufficient decrease of the merit per unit step: (1 - c eps) x reference
+_PIN_ITER = 120  # iterations of one pinned solve (kinks at fixed curvature; linear rate)
+_KINK_NEWTON = 8  # Newton steps on the kinks' blend fractions theta (z(theta) ~ linear)
+_THETA_FD = 1e-3  # step of theta in the finite-difference Jacobian of z(theta)
+_PIN_BUDGET = 1500  # pinned iterations of one search for an equilibrium on a kink
+_KINK_HALVINGS = 4  # halvings of a Newton step on theta before the search gives up
 
 
-def _smooth_kinks(f: ca.Function) -> ca.Function | None:
+def _smooth_kinks(f: ca.Function, pinned: bool = False) -> ca.Function | None:
     """``f`` (an SX function) with the curvature of its kinks blended over a width ``w``.
 
     Returns ``(f's inputs, w) -> (r, z)``: ``r`` is ``f`` with every ``fmax(a, b) = a +
@@ -1057,6 +1211,11 @@ def _smooth_kinks(f: ca.Function) -> ca.Function | None:
     ``|z| < w/2``, a quadratic blend inside, ``relu`` itself at ``w = 0``; ``z`` are the
     kink arguments ``b - a`` (``a - b`` for ``fmin``). ``None`` when ``f`` has no kink, is
     not an SX function or holds operations not replayed here (calls).
+
+    ``pinned``: one more input ``s`` (one entry per kink): kink ``j`` with ``s_j >= 0``
+    has the slope ``s_j`` in ``r``'s Jacobian whatever its argument (``r`` itself is then
+    not ``f``'s: only the Jacobian is used, for Gauss-Newton curvature ``s_j^2``), the
+    others are blended over ``w`` as above (``w = 0``: exact).
     """
     if not f.is_a("SXFunction"):
         return None
@@ -1072,7 +1231,7 @@ def _smooth_kinks(f: ca.Function) -> ca.Function | None:
     ins = [ca.SX.sym(f"i{i}", f.sparsity_in(i)) for i in range(f.n_in())]
     w_in = ca.SX.sym("w")
     out_nz = [[ca.SX(0)] * f.nnz_out(i) for i in range(f.n_out())]
-    kinks = []
+    kinks, pins = [], []
     work: dict = {}
     for k, op in enumerate(ops):
         a, o = f.instruction_input(k), f.instruction_output(k)
@@ -1086,7 +1245,11 @@ def _smooth_kinks(f: ca.Function) -> ca.Function | None:
             x, y = work[a[0]], work[a[1]]
             z = y - x if op == ca.OP_FMAX else x - y
             kinks.append(z)
-            work[o[0]] = x + relu(z, w_in) if op == ca.OP_FMAX else x - relu(z, w_in)
+            g = relu(z, w_in)
+            if pinned:
+                pins.append(ca.SX.sym(f"s{len(pins)}"))
+                g = ca.if_else(pins[-1] >= 0, pins[-1] * z, g)
+            work[o[0]] = x + g if op == ca.OP_FMAX else x - g
         elif len(a) == 2 and len(o) == 1:
             work[o[0]] = ca.SX.binary(op, work[a[0]], work[a[1]])
         elif len(a) == 1 and len(o) == 1:
@@ -1099,7 +1262,113 @@ def _smooth_kinks(f: ca.Function) -> ca.Function | None:
     ]
     if len(outs) != 1:
         return None
+    if pinned:
+        s_in = ca.vertcat(*pins)
+        return ca.Function(f.name() + "_pinned", [*ins, w_in, s_in], [outs[0], ca.vertcat(*kinks)])
     return ca.Function(f.name() + "_kinks", [*ins, w_in], [outs[0], ca.vertcat(*kinks)])
+
+
+def _kink_newton(pinned, sel, theta, u0, ztol):
+    """Newton steps on the blend fractions ``theta`` of the kinks ``sel`` until every kink
+    argument ``|z_j| <= ztol``: ``pinned(sel, theta, u) -> (result, z, ok)`` solves with
+    those kinks at fixed curvature ``theta^2`` from ``u``. The Jacobian of ``z(theta)`` by
+    finite differences, then Broyden updates; steps halved until the pinned solve
+    converges and ``max |z|`` drops; a kink whose ``theta`` would leave ``[0, 1]`` is
+    released (exact curvature). ``(result, sel, theta, z)`` or ``None``."""
+    th = np.asarray(theta, float).copy()
+    r, z, ok = pinned(sel, th, u0)
+    if not ok:
+        return None
+    J = None
+    for _ in range(_KINK_NEWTON):
+        if _max_abs(z) <= ztol:
+            break
+        if J is None:  # finite differences of z(theta), one pinned solve per kink
+            J = np.empty((th.size, th.size))
+            for j in range(th.size):
+                h = -_THETA_FD if th[j] > 0.5 else _THETA_FD
+                t2 = th.copy()
+                t2[j] += h
+                _, z2, ok2 = pinned(sel, t2, r.controls)
+                if not ok2:
+                    return None
+                J[:, j] = (z2 - z) / h
+        try:
+            step = np.linalg.solve(J, z)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.isfinite(step).all():
+            return None
+        keep = (th - step >= 0) & (th - step <= 1)
+        if not keep.all():  # theta leaves [0, 1]: that kink is released (exact
+            sel, th, J = sel[keep], th[keep], None  # curvature), the others stay
+            r, z, ok = pinned(sel, th, r.controls)
+            if not ok:
+                return None
+            continue
+        for _half in range(_KINK_HALVINGS):  # damped: the pinned solve converges, |z| drops
+            r2, z2, ok2 = pinned(sel, th - step, r.controls)
+            if ok2 and _max_abs(z2) < _max_abs(z):
+                break
+            step = 0.5 * step
+        else:
+            return None
+        J += np.outer(z2 - z + J @ step, -step) / float(step @ step)  # Broyden update
+        th, r, z = th - step, r2, z2
+    if _max_abs(z) > ztol:
+        return None
+    return r, sel, th, z
+
+
+class _KinkBudget(Exception):
+    """The pinned solves of one search used up ``_PIN_BUDGET`` iterations."""
+
+
+def _max_abs(v) -> float:
+    return float(np.max(np.abs(v))) if np.size(v) else 0.0
+
+
+def _kink_summary(eq: dict, tol: float) -> dict:
+    """``info["kink_equilibrium"]["equilibrium"]``: what the search for an equilibrium on
+    the kinks found (:meth:`ILQSolver._kink_equilibrium`)."""
+    if "reason" in eq:
+        return {
+            "ok": False,
+            "iterations": eq["iterations"],
+            "message": f"no equilibrium on the kinks: {eq['reason']}",
+        }
+    c = eq["check"]
+    kinks = [
+        (int(i), float(t), float(z))
+        for i, t, z in zip(eq["kinks"], eq["theta"], eq["z"], strict=True)
+    ]
+    out = {
+        "ok": eq["ok"],
+        "kinks": kinks,  # (index, theta, z): curvature theta^2 of kink argument z
+        "stationarity": eq["stationarity"],
+        "feedback_nash": bool(c.ok),
+        "feedback_nash_gain": float(c.max_relative_gain),
+        "iterations": eq["iterations"],
+    }
+    th = ", ".join(f"{t:.4f}" for _, t, _ in kinks)
+    zmax = max((abs(z) for _, _, z in kinks), default=0.0)
+    if eq["ok"]:
+        out["message"] = (
+            f"feedback equilibrium on {len(kinks)} kink(s): max |a| {eq['stationarity']:.1e} <= "
+            f"tol with the kinks' Gauss-Newton curvature theta^2 (theta {th}, an element of "
+            f"the hinge's generalized Hessian) at |z| <= {zmax:.1e}; the feedback-Nash check "
+            f"passes (largest relative gain {c.max_relative_gain:.1e})"
+        )
+    else:
+        why = []
+        if not eq["stationarity"] <= tol:
+            why.append(f"max |a| {eq['stationarity']:.1e} > tol {tol:g}")
+        if not c.ok:
+            why.append(f"the feedback-Nash check fails ({c.max_relative_gain:.1e})")
+        if not why:
+            why.append("the pass with those curvatures is not finite")
+        out["message"] = f"no equilibrium on the kinks (theta {th}): " + "; ".join(why)
+    return out
 
 
 def _secant_step(a_old, a_new, eps, cap):
@@ -1125,6 +1394,9 @@ def _secant_step(a_old, a_new, eps, cap):
 
 def _max(a):
     a = np.asarray(a, float)
+    m = float(a.max()) if a.size else 0.0
+    if math.isfinite(m):  # the common case, without the masked copy
+        return m
     a = a[np.isfinite(a)]
     return float(a.max()) if a.size else 0.0
 
@@ -1160,7 +1432,7 @@ class _CompiledRiccati:
     retried inside; the caller sees non-finite gains and the numpy recursion takes over.
     """
 
-    def __init__(self, s: ILQSolver):
+    def __init__(self, s: ILQSolver, compile_now: bool = True):
         from .codegen import compile_functions
 
         self.s = s
@@ -1180,7 +1452,12 @@ class _CompiledRiccati:
         pr = s._phi_pattern // n
         pc = s._phi_pattern % n
         order = np.lexsort((pr, pc))
-        self._phi_cols = s._phi_pattern[order].astype(np.intp)
+        # entries of Phi_k equal to 1 at every stage (the identity in A_k of the built-in
+        # models) are numbers in the stage function, not inputs: a product with 1 is
+        # exact, so nothing changes by a bit (14.0k instead of 14.7k instructions for 3
+        # unicycles)
+        one = _ones_at_every_stage(s._quad_sym[6], K, s._phi_pattern.size)[order]
+        self._phi_cols = s._phi_pattern[order][~one].astype(np.intp)
         pr, pc = pr[order], pc[order]
 
         Zin = ca.SX.sym("Z", nx + 1, N * (nx + 1))
@@ -1188,9 +1465,9 @@ class _CompiledRiccati:
         phi = ca.SX.sym("phi", self._phi_cols.size)
         mu0 = ca.SX.sym("mu0")
         delta = ca.SX.sym("delta")
-        Ph = ca.SX(ca.Sparsity.triplet(nx + 1, n, pr.tolist(), pc.tolist()), phi)
-        ones_r = [s.nx + m for m in range(s.na)] + [nx]
-        ones_c = [int(c) for c in s.aug] + [n - 1]
+        Ph = ca.SX(ca.Sparsity.triplet(nx + 1, n, pr[~one].tolist(), pc[~one].tolist()), phi)
+        ones_r = [s.nx + m for m in range(s.na)] + [nx] + pr[one].tolist()
+        ones_c = [int(c) for c in s.aug] + [n - 1] + pc[one].tolist()
         Ph = Ph + ca.SX(ca.Sparsity.triplet(nx + 1, n, ones_r, ones_c), ca.SX.ones(len(ones_r)))
         Ts, off, mus = [], 0, []
         for i, (r, c) in enumerate(pats):
@@ -1226,9 +1503,14 @@ class _CompiledRiccati:
         # compile time does not grow with K (the library is cached per structure, K included:
         # folding a K-independent compiled stage in CasADi's VM cost 0.8 us more per stage)
         acc = stage.mapaccum("ilq_riccati", K)  # CasADi may nest and rename it for large K
-        acc = ca.Function("ilq_riccati", acc.mx_in(), acc.call(acc.mx_in()))
-        f = compile_functions([acc], "ilq_riccati", optimize="-O1")["ilq_riccati"]
-        self.call = _Call(f)
+        self.acc = ca.Function("ilq_riccati", acc.mx_in(), acc.call(acc.mx_in()))
+        self.call = None
+        if compile_now:  # else solvers.fast_ilq.compile_solver compiles it with the rest
+            self.attach(compile_functions([self.acc], "ilq_riccati", optimize="-O1"))
+
+    def attach(self, lib: dict) -> None:
+        """Use the compiled fold ``lib['ilq_riccati']``."""
+        self.call = _Call(lib["ilq_riccati"])
 
     def backward(self, mu0, delta):
         s = self.s
@@ -1247,6 +1529,14 @@ class _CompiledRiccati:
         if not ok:  # singular stage: the numpy recursion retries with larger shifts
             return s._numpy_backward(mu0, delta)
         return PA, mu, ok
+
+
+def _ones_at_every_stage(phi_out, K: int, m: int) -> np.ndarray:
+    """Which of the ``m`` trajectory-dependent entries of ``Phi_k`` are the constant 1 at
+    every stage ``k`` of ``phi_out`` (``K m`` SX entries, stage-major)."""
+    return np.array(
+        [all(phi_out[k * m + j].is_one() for k in range(K)) for j in range(m)], dtype=bool
+    )
 
 
 def _sym_product(A, B):

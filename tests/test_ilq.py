@@ -24,19 +24,21 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
+from solvers.feedback_nash import FeedbackNashOptions, feedback_nash_check
 from solvers.ilq import (
     ILQOptions,
     ILQSolver,
     _secant_step,
     _smooth_kinks,
     from_stages,
+    get_solver,
     solve_ilq,
     to_stages,
 )
 from solvers.lm import solve_lm
 from solvers.result import Status
 
-from .helpers import crossing_game
+from .helpers import crossing_game, family_spec
 
 # --------------------------------------------------------------------------------------
 # (a) an LQ game that is not a potential game: exact feedback Nash in one iteration
@@ -403,6 +405,7 @@ def test_options_are_checked():
         {"kink_widths": "1e-2"},
         {"adaptive_step": 1},
         {"restart": "yes"},
+        {"kink_equilibrium": 1},
     ):
         with pytest.raises(SpecError, match="ilq."):
             ILQOptions(**bad)
@@ -565,6 +568,62 @@ def test_kink_blend_is_exact_outside_the_band_and_a_ramp_inside():
     # w = 0 is the original function, values and derivatives
     val, jac, _ = (np.asarray(v).ravel() for v in d([1.0 + 1e-9, 2.0 - 1e-9], 0.0))
     np.testing.assert_allclose(jac, [3.0, 1.0], rtol=1e-12)
+    # pinned: kink 0 at slope 0.3 wherever its argument is, kink 1 (s < 0) blended as above
+    pin = _smooth_kinks(f, pinned=True)
+    r, z = pin(xs, ws, ca.DM([0.3, -1.0]))
+    dp = ca.Function("dp", [xs, ws], [ca.jacobian(r, xs)])
+    for pt, slope1 in (([0.5, 3.0], 0.0), ([1.2, 2 - w / 4], 0.75)):
+        np.testing.assert_allclose(np.asarray(dp(pt, w)).ravel(), [0.9, slope1], rtol=1e-12)
+
+
+def test_an_equilibrium_on_a_collision_kink_is_certified():
+    """``intersection-6-unicycle-w100-s33-jerk`` (bench/sweep_defaults.py, seed 33): the
+    feedback equilibrium sits on a collision hinge ``1/2 max(0, z)^2``, where ``a = 0``
+    holds only with the kink's Gauss-Newton curvature ``theta^2``, ``theta`` strictly
+    inside ``(0, 1)`` (docs/ilq.md, "Equilibria on a kink"). With the default
+    ``kink_equilibrium`` the solve ends ``converged`` there; the feedback-Nash check, own
+    deviations rolled out with the nonlinear dynamics (other seed and directions than the
+    solver's), passes with that policy and fails with either one-sided policy (``theta``
+    0 or 1, gains and feed-forward of the same trajectory). (Without the option the solve
+    stops ``stalled`` at the kink, as before; not run here: 3 s more.)"""
+    g = PotentialGame(family_spec("intersection", 6, "unicycle", 100.0, 33, jerk=True))
+    p = g.default_params()
+    res = solve_ilq(g, p)
+    assert res.status is Status.CONVERGED and res.info["stop"] == "kink_equilibrium"
+    k = res.info["kink_equilibrium"]
+    assert k["certified"] and k["equilibrium"]["ok"] and k["exact_stationarity"] > 1e-3
+    ((idx, theta, z),) = k["equilibrium"]["kinks"]
+    assert 0.1 < theta < 0.9 and abs(z) <= 1e-2 * min(ILQOptions().kink_widths)
+    assert res.info["stationarity"] <= ILQOptions().tol
+    # the same kink argument from a fresh evaluation at the returned trajectory
+    solver = get_solver(g)
+    X, U = to_stages(g, res.states, res.controls)
+    zk = np.array(solver._kink_quad[1](X, U, p)[0]).ravel()
+    assert zk[idx] == pytest.approx(z, abs=1e-15)
+
+    def policy(th):  # gains and feed-forward with the kink at curvature th^2
+        pins = np.full(zk.size, -1.0)
+        pins[idx] = th
+        solver.kink_pins = pins
+        try:
+            solver.quadratize(X, U, p)
+            PA, _, ok = solver.backward(0.0, ILQOptions().min_curvature)
+        finally:
+            solver.kink_pins = None
+        assert ok
+        nx, nxs = solver.nx, solver.nxs
+        return PA[:, :, :nx], PA[:, :, nxs], PA[:, :, nx:nxs]
+
+    opts = FeedbackNashOptions(seed=7, n_random=6, n_coordinate=6)
+    P, a, Q = policy(theta)
+    np.testing.assert_allclose(P, res.info["gains"], rtol=0, atol=1e-12)
+    for th, passes in ((theta, True), (0.0, False), (1.0, False)):
+        P, a, Q = policy(th)
+        assert bool(np.max(np.abs(a)) <= ILQOptions().tol) is passes  # a = 0 only at theta
+        chk = feedback_nash_check(
+            g, p, res.states, res.controls, P, a, opts, gains_prev=Q, prev_variables=solver.aug
+        )
+        assert chk.ok is passes, (th, chk.summary())
 
 
 def test_secant_step_damps_an_overshoot_and_returns_to_full_steps():

@@ -4,8 +4,11 @@ The generated-C quadratization (:mod:`solvers.fast_ilq`: stage functions found f
 graph, mapped over the stages) must fill the same stage matrices, costs and energy as the
 interpreted trajectory function, and the generated-C Riccati recursion
 (:class:`solvers.ilq._CompiledRiccati`: one stage function folded over the horizon,
-symmetric products computed once) must give the numpy recursion's gains, feed-forward
-terms and shifts at the same linearization, to rounding (1e-12 relative). Whole solves must
+symmetric products computed once) must give the numpy
+recursion's gains, feed-forward terms and shifts at the same linearization, to rounding
+(1e-12 relative). The one-call trial (:class:`solvers.fast_ilq.CompiledTrial`: rollout,
+quadratization and Riccati recursion in one generated function, what compiled solves with
+the game's costs run) must give the separate calls' numbers bit for bit. Whole solves must
 take the same path: iterates, statuses, iteration counts, accepted steps. Games: 2-4
 unicycles with active collisions, bicycles, costs that couple consecutive stages (jerk,
 carried as extra states), and custom costs (exact Hessian, costs left interpreted).
@@ -132,3 +135,24 @@ def test_compiled_path_equals_interpreted(name, compiler):
         assert np.abs(Xc - X).max() > 1e-3  # a real step
         _close(Xc, Xi)
         _close(Uc, Ui)
+
+    # the one-call trial (game costs only): the separate compiled calls' numbers, bit for bit
+    ft = solver._ftrial
+    if costs is not None:
+        assert ft is None
+        return
+    for eps, mu0 in ((1.0, 0.0), (0.25, 1e-3)):
+        Xt, Ut, Ct, Et, PAt, mut, okt = ft(p, X, U, PA_r, eps, mu0, 1e-8)
+        Xs, Us = solver.rollout(p, X, U, PA_r, eps, compiled=True)
+        Cs, Es = solver.quadratize(Xs, Us, p, compiled=True)
+        PAs, mus, oks = solver.backward(mu0, 1e-8)
+        assert okt and oks and Et == Es
+        for got, want in ((Xt, Xs), (Ut, Us), (Ct, Cs), (PAt, PAs), (mut, mus)):
+            np.testing.assert_array_equal(got, want)
+    # PA = None linearizes at the given rollout itself
+    Xs, Us = solver.rollout(p, X, U, PA_r, 0.5, compiled=True)
+    Xt, Ut, Ct, Et, PAt, mut, okt = ft(p, Xs, Us, None, 0.0, 0.0, 1e-8)
+    np.testing.assert_array_equal(Xt, Xs)
+    np.testing.assert_array_equal(Ut, Us)
+    Cs, Es = solver.quadratize(Xs, Us, p, compiled=True)
+    np.testing.assert_array_equal(PAt, solver.backward(0.0, 1e-8)[0])
