@@ -21,6 +21,7 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     paths          (B, N, P, 2)   float32   each agent's reference lane (game ``path``; if stored)
     vref           (B, N)         float32   each agent's reference speed (game ``vref``; if stored)
     radius         (B, N)         float32   each agent's collision radius (game ``radius``; if stored)
+    length, width  (B, N)         float32   vehicle size, metres (exiD layout; if stored)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states
@@ -73,6 +74,8 @@ OPTIONAL_FIELDS = (
     "paths",
     "vref",
     "radius",
+    "length",
+    "width",
 )
 
 
@@ -266,7 +269,16 @@ class SceneDataset(torch.utils.data.Dataset):
         if valid is None:
             valid = np.ones((n, self.history_steps), bool)
         out = {"history": np.ascontiguousarray(raw["history"], np.float32)}
-        for k in ("goals", "goal_candidates", "lanes", "paths", "vref", "radius"):
+        for k in (
+            "goals",
+            "goal_candidates",
+            "lanes",
+            "paths",
+            "vref",
+            "radius",
+            "length",
+            "width",
+        ):
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)

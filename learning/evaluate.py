@@ -6,7 +6,9 @@ and the overlap rate OR of the most likely joint mode (joint), in metres, averag
 the samples. Joint models (ours, SC, CV) give scene probabilities ``softmax(logits)``;
 the marginal V-LSTM gives per-agent probabilities, turned into joint scenes by
 :func:`learning.metrics.marginal_to_joint` as in the paper. The agents' radii for OR come
-from the dataset's game.
+from the dataset's game; on datasets with vehicle sizes (exiD layout: ``length``, ``width``)
+``OR`` uses oriented vehicle boxes instead and ``OR_circle`` keeps the circles
+(:mod:`learning.metrics`); the table's header says which.
 
 :func:`evaluate` scores run directories (written by :func:`learning.train.train`; their
 ``best.pt`` by default) and optionally CV on one split and returns an
@@ -114,12 +116,17 @@ class EvalReport:
             out.setdefault(r.label, []).append(r)
         return sorted(out.items(), key=lambda kv: kv[0] == "CV")
 
+    def metric_names(self) -> tuple[str, ...]:
+        """:data:`METRICS`, plus ``OR_circle`` when OR used vehicle boxes."""
+        box = any("OR_circle" in r.metrics for r in self.results)
+        return METRICS + (("OR_circle",) if box else ())
+
     def summary_rows(self) -> list[dict]:
         rows = []
         for label, rs in self.groups():
             row = {"method": label, "runs": len(rs), "samples": rs[0].samples}
-            for k in METRICS:
-                v = [r.metrics[k] for r in rs]
+            for k in self.metric_names():
+                v = [r.metrics.get(k, math.nan) for r in rs]
                 row[f"{k}_mean"] = float(np.mean(v))
                 row[f"{k}_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else math.nan
             rows.append(row)
@@ -128,15 +135,23 @@ class EvalReport:
     def markdown(self) -> str:
         """The table: one row per method, ``mean ± std`` over its runs; distances in metres."""
         n = self.results[0].samples if self.results else 0
+        names = self.metric_names()
+        orule = (
+            "OR: oriented vehicle boxes (length x width, heading along the predicted motion); "
+            "OR_circle: circles of the game's radii"
+            if "OR_circle" in names
+            else "OR: circles of the game's radii"
+        )
         lines = [
             f"Split `{self.split}` of `{self.data_dir}` ({n} samples). minADE/minFDE marginal, "
-            "minSADE/minSFDE/OR joint; metres; lower is better; mean ± std (ddof 1) over runs.",
+            "minSADE/minSFDE/OR joint; metres; lower is better; mean ± std (ddof 1) over runs. "
+            f"{orule}.",
             "",
-            "| Method | runs | " + " | ".join(METRICS) + " |",
-            "|---|---:|" + "---:|" * len(METRICS),
+            "| Method | runs | " + " | ".join(names) + " |",
+            "|---|---:|" + "---:|" * len(names),
         ]
         for label, rs in self.groups():
-            cells = [format_mean_std([r.metrics[k] for r in rs]) for k in METRICS]
+            cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in names]
             lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
         return "\n".join(lines) + "\n"
 

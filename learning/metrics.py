@@ -14,8 +14,20 @@ Definitions (``d = ||pred - gt||_2`` per agent and step):
 - ``minFDE`` (marginal): the same at the last step;
 - ``minSADE`` (joint): the minimum over modes of the mean over agents and time of ``d``;
 - ``minSFDE`` (joint): the minimum over modes of the mean over agents of ``d`` at the last step;
-- overlap rate ``OR``: share of samples whose most likely joint prediction has two agents'
-  circles overlapping (``dist < r_i + r_j``) at some step.
+- overlap rate ``OR``: share of samples whose most likely joint prediction has two agents
+  overlapping at some step. Two definitions:
+
+  * circles (:func:`overlap_rate`): ``dist < r_i + r_j``, the radii of the dataset's game;
+  * oriented boxes (:func:`overlap_rate_boxes`, Waymo / JFP style): each agent a
+    ``length x width`` rectangle centred on its predicted position, heading along its
+    predicted direction of motion; two agents overlap when their rectangles intersect
+    (separating-axis test; touching is not an overlap).
+
+  **Which one a table uses**: :func:`all_metrics` (and so ``epo evaluate`` / validation)
+  reports ``OR`` with boxes when the batch gives each agent's length and width (exiD-layout
+  datasets, fields ``length`` and ``width``) and then also the circle OR as ``OR_circle``;
+  datasets without those fields (RPI, left turn) get circles. ``epo evaluate`` writes the
+  definition into its table header.
 
 Marginal models have one probability per agent and mode; their joint scenes are built
 as the paper describes, by ordering each agent's modes by its marginal probability and
@@ -35,6 +47,9 @@ __all__ = [
     "min_sade",
     "min_sfde",
     "overlap_rate",
+    "overlap_rate_boxes",
+    "box_overlap",
+    "motion_headings",
     "marginal_to_joint",
     "all_metrics",
 ]
@@ -119,6 +134,96 @@ def overlap_rate(pred, probs, radii, mask=None) -> torch.Tensor:
     return hit.flatten(1).any(-1).to(pred.dtype)
 
 
+def motion_headings(pos, start=None, heading0=None, min_step: float = 0.05) -> torch.Tensor:
+    """Heading of each agent at each step from its direction of motion, ``(..., T)``.
+
+    ``pos`` ``(..., T, 2)``; the heading at step ``t`` is the direction of
+    ``pos[t] - pos[t - 1]`` (``pos[-1]`` = ``start`` ``(..., 2)``, the current position;
+    without it ``2 pos[0] - pos[1]``, i.e. step 0 takes step 1's direction). Where an agent
+    moves less than ``min_step`` metres in a step (nearly stopped) it keeps its last valid
+    heading; before its first valid one, ``heading0`` ``(...)`` (the current heading; 0
+    without it). No loop over steps: the last valid step comes from a running maximum.
+    """
+    pos = _t(pos)
+    if pos.shape[-1] != 2 or pos.ndim < 2:
+        raise ValueError(f"pos: expected shape (..., T, 2), got {tuple(pos.shape)}")
+    T = pos.shape[-2]
+    if start is None:
+        start = 2 * pos[..., 0, :] - pos[..., min(1, T - 1), :]
+    start = _t(start).to(pos.dtype)
+    prev = torch.cat([start.unsqueeze(-2), pos[..., :-1, :]], dim=-2)
+    d = pos - prev
+    raw = torch.atan2(d[..., 1], d[..., 0])  # (..., T)
+    valid = torch.linalg.vector_norm(d, dim=-1) >= min_step
+    steps = torch.arange(T, device=pos.device).expand(valid.shape)
+    last = torch.where(valid, steps, torch.full_like(steps, -1)).cummax(dim=-1).values
+    held = torch.gather(raw, -1, last.clamp_min(0))
+    h0 = torch.zeros(pos.shape[:-2], dtype=pos.dtype, device=pos.device)
+    if heading0 is not None:
+        h0 = h0 + _t(heading0).to(pos.dtype)
+    return torch.where(last >= 0, held, h0.unsqueeze(-1).expand_as(held))
+
+
+def box_overlap(c1, h1, l1, w1, c2, h2, l2, w2) -> torch.Tensor:
+    """True where two oriented rectangles intersect (separating-axis test), broadcast.
+
+    Centres ``c`` ``(..., 2)``, headings ``h`` (radians, along the length), lengths ``l``
+    and widths ``w`` ``(...)``. Two convex polygons are disjoint iff some edge normal
+    separates their projections; a rectangle has two: the four axes of the pair are
+    tested at once. Touching (equal projections' extents) is not an overlap.
+    """
+    c1, c2 = _t(c1), _t(c2)
+    h1, h2, l1, l2, w1, w2 = (_t(a).to(c1.dtype) for a in (h1, h2, l1, l2, w1, w2))
+    u1 = torch.stack([torch.cos(h1), torch.sin(h1)], -1)
+    v1 = torch.stack([-torch.sin(h1), torch.cos(h1)], -1)
+    u2 = torch.stack([torch.cos(h2), torch.sin(h2)], -1)
+    v2 = torch.stack([-torch.sin(h2), torch.cos(h2)], -1)
+    axes = torch.stack(torch.broadcast_tensors(u1, v1, u2, v2), -2)  # (..., 4, 2)
+
+    def proj(a, b):  # |a . b| over the axes
+        return (a * b.unsqueeze(-2)).sum(-1).abs()
+
+    gap = proj(axes, c2 - c1)
+    r1 = 0.5 * l1.unsqueeze(-1) * proj(axes, u1) + 0.5 * w1.unsqueeze(-1) * proj(axes, v1)
+    r2 = 0.5 * l2.unsqueeze(-1) * proj(axes, u2) + 0.5 * w2.unsqueeze(-1) * proj(axes, v2)
+    return (gap < r1 + r2).all(-1)
+
+
+def overlap_rate_boxes(
+    pred, probs, length, width, start=None, heading0=None, mask=None, min_step: float = 0.05
+) -> torch.Tensor:
+    """1.0 for samples whose most likely joint mode has two intersecting vehicle boxes.
+
+    ``length``, ``width`` ``(B, N)`` (or ``(N,)``) metres; ``start`` ``(B, N, 2)`` and
+    ``heading0`` ``(B, N)`` the agents' current positions and headings (the box heading at
+    each step is the predicted direction of motion, :func:`motion_headings`). Batched over
+    samples, agent pairs and steps.
+    """
+    pred, probs = _t(pred), _t(probs)
+    if pred.ndim != 5 or pred.shape[-1] != 2:
+        raise ValueError(f"pred: expected shape (B, M, N, T, 2), got {tuple(pred.shape)}")
+    B, M, N = pred.shape[:3]
+    if probs.shape != (B, M):
+        raise ValueError(
+            f"probs: expected joint probabilities of shape {(B, M)}, got {tuple(probs.shape)}"
+        )
+    size = []
+    for name, v in (("length", length), ("width", width)):
+        v = _t(v).to(pred.dtype)
+        if v.shape not in ((N,), (B, N)):
+            raise ValueError(f"{name}: expected shape {(B, N)} or {(N,)}, got {tuple(v.shape)}")
+        size.append(v.expand(B, N)[:, :, None])  # (B, N, 1): broadcast over steps
+    L, W = size
+    if mask is None:
+        mask = torch.ones(B, N, dtype=torch.bool, device=pred.device)
+    best = pred[torch.arange(B), probs.argmax(dim=1)]  # (B, N, T, 2)
+    h = motion_headings(best, start, heading0, min_step)  # (B, N, T)
+    a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
+    hit = box_overlap(best[a], h[a], L[a], W[a], best[b], h[b], L[b], W[b])  # (B, N, N, T)
+    pair = mask[:, :, None] & mask[:, None, :] & ~torch.eye(N, dtype=torch.bool)[None]
+    return (hit.any(-1) & pair).flatten(1).any(-1).to(pred.dtype)
+
+
 def marginal_to_joint(pred, probs):
     """Joint scenes from per-agent modes ordered by marginal probability.
 
@@ -139,15 +244,25 @@ def marginal_to_joint(pred, probs):
     return joint, p / p.sum(-1, keepdim=True).clamp_min(1e-12)
 
 
-def all_metrics(pred, gt, probs, radii, mask=None) -> dict[str, torch.Tensor]:
-    """Every metric per sample; ``probs`` joint ``(B, M)`` or marginal ``(B, N, M)``."""
+def all_metrics(pred, gt, probs, radii, mask=None, boxes=None) -> dict[str, torch.Tensor]:
+    """Every metric per sample; ``probs`` joint ``(B, M)`` or marginal ``(B, N, M)``.
+
+    ``boxes``: None (``OR`` with the circles of ``radii``), or a dict with ``length`` and
+    ``width`` ``(B, N)`` and optionally ``start`` ``(B, N, 2)`` and ``heading0`` ``(B, N)``
+    (:func:`overlap_rate_boxes`): then ``OR`` is the box overlap rate and ``OR_circle``
+    the circle one.
+    """
     probs = _t(probs)
     marginal = {"minADE": min_ade(pred, gt, mask), "minFDE": min_fde(pred, gt, mask)}
     if probs.ndim == 3:
         pred, probs = marginal_to_joint(pred, probs)
-    return {
+    out = {
         **marginal,
         "minSADE": min_sade(pred, gt, mask),
         "minSFDE": min_sfde(pred, gt, mask),
         "OR": overlap_rate(pred, probs, radii, mask),
     }
+    if boxes is not None:
+        out["OR_circle"] = out["OR"]
+        out["OR"] = overlap_rate_boxes(pred, probs, mask=mask, **boxes)
+    return out

@@ -32,13 +32,30 @@ def predict(model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, torch.Te
     return out["pos"], probs, out
 
 
+def boxes(batch: dict) -> dict | None:
+    """Vehicle boxes for the overlap rate when the batch has ``length`` and ``width``
+    (exiD layout; :func:`learning.metrics.overlap_rate_boxes`), else None (circles)."""
+    if "length" not in batch or "width" not in batch:
+        return None
+    cur = batch["history"][:, -1]  # (B, N, 4): x, y, v, theta
+    return {
+        "length": batch["length"],
+        "width": batch["width"],
+        "start": cur[..., :2],
+        "heading0": cur[..., 3],
+    }
+
+
 def evaluate_model(
     model: torch.nn.Module,
     data: SceneDataset,
     batch_size: int = 64,
     progress: bool = False,
 ) -> dict[str, float]:
-    """Mean of every metric over ``data`` (and ``samples``); the model is put in eval mode."""
+    """Mean of every metric over ``data`` (and ``samples``); the model is put in eval mode.
+
+    :data:`METRICS`; on data with vehicle sizes (:func:`boxes`) ``OR`` uses boxes and
+    ``OR_circle`` is added (the circles of the game's radii)."""
     radii = torch.tensor([a.radius for a in data.game.agents], dtype=torch.float32)
     was_training = model.training
     model.eval()
@@ -53,8 +70,10 @@ def evaluate_model(
         with torch.no_grad():
             for batch in data.batches(batch_size):
                 pos, probs, _ = predict(model, batch)
-                m = all_metrics(pos.float(), batch["gt"], probs.float(), radii)
-                for k in METRICS:
+                m = all_metrics(pos.float(), batch["gt"], probs.float(), radii, boxes=boxes(batch))
+                for k in m.keys() - sums.keys():  # OR_circle with boxes
+                    sums[k] = 0.0
+                for k in m:
                     sums[k] += float(m[k].sum())
                 n += pos.shape[0]
                 if bar is not None:
@@ -66,6 +85,6 @@ def evaluate_model(
     if n == 0:  # e.g. an empty val split: say so instead of a silent "minADE nan"
         where = f"split {data.split!r} of {data.directory}" if hasattr(data, "split") else "data"
         warnings.warn(f"{where} has no samples: every metric is nan", stacklevel=2)
-    out = {k: (sums[k] / n if n else math.nan) for k in METRICS}
+    out = {k: (sums[k] / n if n else math.nan) for k in sums}
     out["samples"] = n
     return out
