@@ -395,9 +395,8 @@ def compile_solver(solver, optimize: str | None = None, trial: bool = True) -> N
     reference, ``bench/bench_ilq.py``).
     """
     from .codegen import CompilerError, compile_functions
-    from .ilq import _CompiledRiccati
 
-    ric = _CompiledRiccati(solver, compile_now=False)
+    ric = solver.riccati_fold()  # the solver's own Riccati fold, not compiled yet
     quad = build(solver, *solver._quad_sym)
     roll = CompiledRollout(solver)
     funcs = [ric.acc, roll.fn] + ([] if quad is None else quad.fns)

@@ -1,7 +1,7 @@
 """A sampled check that a feedback policy is a (local) feedback Nash equilibrium.
 
 The iLQ solver (:mod:`solvers.ilq`) returns a feedback policy, one per stage
-``k = 0..K-1``, for the joint stage vectors of :func:`solvers.ilq.to_stages`::
+``k = 0..K-1``, for the joint stage vectors of :func:`solvers.stages.to_stages`::
 
     U_k(X) = U*_k - P_k (X_k - X*_k) - Q_k (Y_k - Y*_k) - a_k
 
@@ -41,6 +41,7 @@ from epo_casadi.errors import SpecError, check_number
 from epo_casadi.game import PotentialGame
 
 from .lm import check_options
+from .stages import to_stages
 
 __all__ = [
     "FeedbackNashOptions",
@@ -167,15 +168,13 @@ def feedback_nash_check(
 
     ``states`` ``(n_x,)`` and ``controls`` ``(n_u,)``: the trajectory ``(X*, U*)`` in the
     flat game layout; ``gains`` ``(K, nu, nx)`` and ``feedforward`` ``(K, nu)`` in the
-    joint stage layout of :func:`solvers.ilq.to_stages` (an iLQ result's
+    joint stage layout of :func:`solvers.stages.to_stages` (an iLQ result's
     ``info["gains"]`` and ``info["feedforward"]``). ``gains_prev`` ``(K, nu, na)`` and
     ``prev_variables`` ``(na,)``: the gains ``Q`` on the carried variables
     ``Y_k = (U_{k-1}, X_{k-1})[prev_variables]`` (``Y_0 - Y*_0 = 0``; an iLQ result's
     ``info["gains_prev"]`` and ``info["prev_variables"]``); both or neither (``None``: no
     ``Q`` term). One problem at a time.
     """
-    from .ilq import to_stages
-
     opts = check_options(FeedbackNashOptions, options, "feedback_nash")
     t0 = time.perf_counter()
     K, N = game.K, game.N

@@ -156,6 +156,7 @@ from epo_casadi.game import PotentialGame
 from .codegen import BufferCall as _Call
 from .lm import MAX_STEPS, check_options
 from .result import SolveResult, Status
+from .stages import _stage_index, from_stages, to_stages  # noqa: F401 (re-exported)
 
 __all__ = ["ILQOptions", "ILQSolver", "get_solver", "solve_ilq", "to_stages", "from_stages"]
 
@@ -267,60 +268,6 @@ class ILQOptions:
 # --------------------------------------------------------------------------------------
 # layout helpers
 # --------------------------------------------------------------------------------------
-def _stage_index(game: PotentialGame):
-    """Index arrays: flat x -> (K+1, nx) and flat u -> (K, nu) (read-only, cached on the
-    game: every solve converts its start and result)."""
-    return game.cached(("ilq_stage_index",), lambda: _make_stage_index(game))
-
-
-def _make_stage_index(game: PotentialGame):
-    K = game.K
-    xi = np.concatenate(
-        [
-            game.xoff[i] + np.arange(K + 1)[:, None] * game.nx[i] + np.arange(game.nx[i])[None]
-            for i in range(game.N)
-        ],
-        axis=1,
-    )
-    ui = np.concatenate(
-        [
-            game.uoff[i] + np.arange(K)[:, None] * game.nu[i] + np.arange(game.nu[i])[None]
-            for i in range(game.N)
-        ],
-        axis=1,
-    )
-    xi, ui = xi.astype(np.intp), ui.astype(np.intp)
-    xi.setflags(write=False)
-    ui.setflags(write=False)
-    return xi, ui
-
-
-def to_stages(game: PotentialGame, x: np.ndarray | None = None, u: np.ndarray | None = None):
-    """Joint stage arrays ``X (..., K+1, nx)`` and ``U (..., K, nu)`` from flat ``x``, ``u``.
-
-    Either argument may be ``None`` (then ``None`` is returned in its place).
-    """
-    xi, ui = _stage_index(game)
-    X = None if x is None else np.asarray(x)[..., xi]
-    U = None if u is None else np.asarray(u)[..., ui]
-    return X, U
-
-
-def from_stages(game: PotentialGame, X: np.ndarray | None = None, U: np.ndarray | None = None):
-    """Inverse of :func:`to_stages`: flat ``x (..., n_x)`` and ``u (..., n_u)``."""
-    xi, ui = _stage_index(game)
-    x = u = None
-    if X is not None:
-        X = np.asarray(X)
-        x = np.empty(X.shape[:-2] + (game.n_x,))
-        x[..., xi] = X
-    if U is not None:
-        U = np.asarray(U)
-        u = np.empty(U.shape[:-2] + (game.n_u,))
-        u[..., ui] = U
-    return x, u
-
-
 # --------------------------------------------------------------------------------------
 # the solver object
 # --------------------------------------------------------------------------------------
@@ -775,6 +722,11 @@ class ILQSolver:
 
             fast_ilq.compile_solver(self)  # one library; also the one-call trial (_ftrial)
         return self
+
+    def riccati_fold(self) -> _CompiledRiccati:
+        """The generated Riccati recursion of this solver, built but not compiled
+        (:func:`solvers.fast_ilq.compile_solver` compiles it into the solver's library)."""
+        return _CompiledRiccati(self, compile_now=False)
 
     # ---- the solve ------------------------------------------------------------------------
     def solve(
