@@ -77,6 +77,9 @@ OPTIONAL_FIELDS = (
     "length",
     "width",
 )
+#: the optional fields a batch carries as float32 arrays (``history_valid`` becomes a mask,
+#: ``gt_mode`` selects the ground truth)
+FLOAT_FIELDS = tuple(k for k in OPTIONAL_FIELDS if k not in ("history_valid", "gt_mode"))
 
 
 def ground_truth(future, gt_mode=None):
@@ -269,16 +272,7 @@ class SceneDataset(torch.utils.data.Dataset):
         if valid is None:
             valid = np.ones((n, self.history_steps), bool)
         out = {"history": np.ascontiguousarray(raw["history"], np.float32)}
-        for k in (
-            "goals",
-            "goal_candidates",
-            "lanes",
-            "paths",
-            "vref",
-            "radius",
-            "length",
-            "width",
-        ):
+        for k in FLOAT_FIELDS:
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)

@@ -31,6 +31,15 @@ AGENT_COLORS = ["black", "tab:purple", "tab:brown", "tab:olive"]
 MODE_COLORS = ["tab:red", "tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:pink"]
 
 
+def load_sample(data_dir: str | os.PathLike, split: str, index: int) -> tuple:
+    """``(game, batch)`` of sample ``index`` of ``split`` (a batch of one); a non-integer
+    ``index`` is refused with :class:`SpecError`."""
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
+        raise SpecError("index", f"expected an integer, got {index!r}")
+    with SceneDataset(data_dir, split) as data:
+        return data.game, data.batch([int(index)])
+
+
 def show_predictions(
     run_dir: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -45,11 +54,7 @@ def show_predictions(
     from matplotlib.patches import Circle
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-        raise SpecError("index", f"expected an integer, got {index!r}")
-    with SceneDataset(data_dir, split) as data:
-        game = data.game
-        batch = data.batch([int(index)])
+    game, batch = load_sample(data_dir, split, index)
     with SplitReader(data_dir, split) as r:
         raw = r[int(index)]
         agents = r.manifest.get("meta", {}).get("agents") or list(game.agent_names)

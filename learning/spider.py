@@ -18,8 +18,8 @@ import torch
 
 from epo_casadi.errors import SpecError
 
-from .data import SceneDataset
 from .evaluate import predict
+from .show import load_sample
 
 __all__ = ["spider_weights", "weight_spider"]
 
@@ -65,11 +65,7 @@ def weight_spider(
 
     from .train import load_model
 
-    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
-        raise SpecError("index", f"expected an integer, got {index!r}")
-    with SceneDataset(data_dir, split) as data:
-        game = data.game
-        batch = data.batch([int(index)])
+    game, batch = load_sample(data_dir, split, index)
     model, cfg, _ = load_model(run_dir, game, which=checkpoint)
     if cfg.model.kind != "epo":
         raise SpecError("run_dir", f"expected a run of ours (kind 'epo'), got {cfg.model.kind!r}")
