@@ -57,7 +57,7 @@ def method_label(cfg: ModelConfig | None) -> str:
 
     Runs with one label are one table row, so every setting that makes ours another method
     is in it: the ablations, another number of LM steps than the paper's 2, decoded goals,
-    the implicit backward pass.
+    the implicit backward pass, another collision reach.
     """
     if cfg is None:
         return "CV"
@@ -74,6 +74,8 @@ def method_label(cfg: ModelConfig | None) -> str:
             label += f" (goals: {cfg.goal_decoder})"
         if cfg.backward != "unrolled":
             label += f" ({cfg.backward})"
+        if cfg.collision_margin is not None:
+            label += f" (collision margin {cfg.collision_margin:g} m)"
     return label
 
 

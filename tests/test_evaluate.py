@@ -115,6 +115,10 @@ def test_method_labels():
         == "V-LSTM + Ours (S = 10) (goals: candidates)"
     )
     assert method_label(ModelConfig(kind="epo", backward="implicit")) == "V-LSTM + Ours (implicit)"
+    assert (
+        method_label(ModelConfig(kind="epo", collision_margin=1.0))
+        == "V-LSTM + Ours (collision margin 1 m)"
+    )
 
 
 @pytest.fixture(scope="module")
