@@ -22,6 +22,8 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     vref           (B, N)         float32   each agent's reference speed (game ``vref``; if stored)
     radius         (B, N)         float32   each agent's collision radius (game ``radius``; if stored)
     length, width  (B, N)         float32   vehicle size, metres (exiD layout; if stored)
+    goal_lane      (B, N, G)      int64     per goal candidate the index in ``lanes`` of the
+                                            lane it lies on, -1 off every lane (see below)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states
@@ -32,6 +34,13 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
 without ``goals`` suits ours with a goal decoder (``goal_decoder="candidates"`` or
 ``"regress"``) and the baselines.
 The ground truth is chosen by :func:`ground_truth`, the one place that knows how.
+
+``goal_lane`` is derived from the exiD layout's ``goal_candidate_lane`` (0 left, 1 current,
+2 right) and ``goal_candidate_on_lane`` when ``lanes`` holds each agent's three lanes in a
+row (``L = 3 N``: agent ``i``'s at ``3 i .. 3 i + 2``): candidate ``g`` of agent ``i`` lies
+on ``lanes[3 i + goal_candidate_lane[i, g]]``, and a candidate on a lane boundary (no
+neighbouring lane) on none (-1). Ours uses it to give each mode the reference lane of its
+goal (the paper's ``c_lane``; :class:`learning.models.ModelConfig` ``lane_path``).
 
 The game a model needs for a dataset (agents, horizon, parameter layout) is built from
 the manifest's scenario and recipe by :func:`dataset_game`.
@@ -57,6 +66,7 @@ __all__ = [
     "SceneDataset",
     "dataset_game",
     "game_summary",
+    "goal_lanes",
     "ground_truth",
     "register_game",
 ]
@@ -76,10 +86,32 @@ OPTIONAL_FIELDS = (
     "radius",
     "length",
     "width",
+    "goal_candidate_lane",
+    "goal_candidate_on_lane",
 )
 #: the optional fields a batch carries as float32 arrays (``history_valid`` becomes a mask,
-#: ``gt_mode`` selects the ground truth)
-FLOAT_FIELDS = tuple(k for k in OPTIONAL_FIELDS if k not in ("history_valid", "gt_mode"))
+#: ``gt_mode`` selects the ground truth, the ``goal_candidate_*`` ones become ``goal_lane``)
+FLOAT_FIELDS = tuple(
+    k
+    for k in OPTIONAL_FIELDS
+    if k not in ("history_valid", "gt_mode", "goal_candidate_lane", "goal_candidate_on_lane")
+)
+
+
+def goal_lanes(
+    candidate_lane: np.ndarray, on_lane: np.ndarray | None, n_lanes: int
+) -> np.ndarray | None:
+    """``goal_lane`` ``(B, N, G)`` (int64) of the exiD layout (module docstring), or None
+    when ``lanes`` does not hold three lanes per agent (``n_lanes != 3 N``)."""
+    B, N, G = candidate_lane.shape
+    if n_lanes != 3 * N:
+        return None
+    c = candidate_lane.astype(np.int64)
+    idx = 3 * np.arange(N, dtype=np.int64)[None, :, None] + c
+    bad = (c < 0) | (c > 2)
+    if on_lane is not None:
+        bad |= ~on_lane.astype(bool)
+    return np.where(bad, -1, idx)
 
 
 def ground_truth(future, gt_mode=None):
@@ -276,6 +308,12 @@ class SceneDataset(torch.utils.data.Dataset):
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)
+        if "goal_candidate_lane" in raw and "lanes" in raw:
+            gl = goal_lanes(
+                raw["goal_candidate_lane"], raw.get("goal_candidate_on_lane"), raw["lanes"].shape[1]
+            )
+            if gl is not None:
+                out["goal_lane"] = gl
         out["gt_states"] = np.ascontiguousarray(gt, np.float32)
         return out
 

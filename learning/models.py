@@ -13,7 +13,10 @@ step), ``M`` modes, ``K`` future steps. A scene batch is a dict of tensors:
 - ``lanes`` (optional): ``(B, L, P, 2)`` lane polylines, ``lanes_mask`` ``(B, L)``;
 - ``paths`` (optional): ``(B, N, P, 2)`` each agent's reference lane and ``vref``
   (optional) ``(B, N)`` its reference speed: ours fills the game's ``path`` / ``vref``
-  parameter blocks with them (left-turn datasets).
+  parameter blocks with them (left-turn and exiD-layout datasets);
+- ``goal_lane`` (optional): ``(B, N, G)`` the index in ``lanes`` of the lane each goal
+  candidate lies on (-1: none): ours' ``lane`` term follows the lane of each mode's goal
+  (``ModelConfig.lane_path``, the paper's ``c_lane``).
 
 Encoders (paper App. F.1): every agent's history is a polyline of vectors
 ``(start xy, end xy, time)``; a 3-layer LSTM of width 64 encodes it (V-LSTM); lanes go
@@ -68,6 +71,7 @@ __all__ = [
     "GOAL_DECODERS",
     "GoalDecoder",
     "goal_candidates",
+    "goal_paths",
     "scene_reference",
     "ModelConfig",
     "LAYER_BACKENDS",
@@ -145,6 +149,12 @@ class ModelConfig:
     #: and with them the overlap rate, stay the dataset's (docs/experiment_rpi.md: the Peters
     #: ground truth interacts up to 1.5 m, beyond the RPI game's 0.65 m reach)
     collision_margin: float | None = None
+    #: ours: the reference lane of each mode's ``lane`` term when the game has a ``path``
+    #: block: "goal" (the paper's c_lane: the lane the mode's goal candidate lies on, from
+    #: the scene's ``goal_lane``; the scene's ``paths`` where the candidate is on no lane or
+    #: the scene has no ``goal_lane``) or "current" (the scene's ``paths`` for every mode).
+    #: Runs saved before the field existed load as "current" (what they were trained with).
+    lane_path: str = "goal"
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm", "tgl"):
@@ -212,6 +222,10 @@ class ModelConfig:
             raise SpecError(
                 "model.layer_compiled",
                 f"expected 'auto', 'yes' or 'no', got {self.layer_compiled!r}",
+            )
+        if self.lane_path not in ("goal", "current"):
+            raise SpecError(
+                "model.lane_path", f"expected 'goal' or 'current', got {self.lane_path!r}"
             )
         for k in ("learned_init", "goal_features"):
             check_bool(f"model.{k}", getattr(self, k))
@@ -289,6 +303,30 @@ def scene_reference(scene: dict, field: str, agent: int, size: int) -> torch.Ten
     return t[:, agent].reshape(B, size)
 
 
+def goal_paths(scene: dict, goal_index: torch.Tensor, size: int) -> torch.Tensor:
+    """Each mode's reference lane ``(B, N, M, size)`` (``size = 2 P``, flattened like
+    :func:`scene_reference`): the polyline ``lanes[goal_lane[b, i, goal_index[b, i, m]]]``
+    the chosen goal candidate lies on, or the scene's ``paths`` (its current lane) where the
+    candidate lies on no lane (``goal_lane`` -1). ``goal_index`` ``(B, N, M)`` indexes the
+    scene's candidates. One gather over the batch, agents and modes."""
+    lanes, gl = scene["lanes"], scene["goal_lane"]
+    B, N, M = goal_index.shape
+    if lanes.ndim != 4 or int(np.prod(lanes.shape[2:])) != size:
+        raise SpecError(
+            "lanes",
+            f"expected shape ({B}, L, {size // 2}, 2) to give the game's path, got "
+            f"{tuple(lanes.shape)}",
+        )
+    if gl.shape[:2] != (B, N):
+        raise SpecError("goal_lane", f"expected shape ({B}, {N}, G), got {tuple(gl.shape)}")
+    sel = gl.to(goal_index.device).long().gather(2, goal_index)  # (B, N, M) lane index or -1
+    flat = lanes.reshape(B, lanes.shape[1], size)
+    take = flat.gather(1, sel.clamp(min=0).reshape(B, N * M, 1).expand(B, N * M, size))
+    take = take.reshape(B, N, M, size)
+    cur = scene["paths"].reshape(B, N, 1, size).to(take.dtype).expand(B, N, M, size)
+    return torch.where((sel >= 0)[..., None], take, cur)
+
+
 class GoalDecoder(nn.Module):
     """Goal decoder ``phi_goal`` (paper Sec. 4.1, App. F.1), shared by all agents.
 
@@ -299,7 +337,8 @@ class GoalDecoder(nn.Module):
 
     ``forward`` returns ``goals`` ``(B, M, N, 2)`` and, for candidates, ``goal_logits``
     ``(B, N, G)`` (masked candidates at the dtype's lowest value), ``goal_candidates``
-    ``(B, N, G, 2)`` and ``goal_candidates_mask``.
+    ``(B, N, G, 2)``, ``goal_candidates_mask`` and ``goal_index`` ``(B, N, M)`` (the
+    candidates chosen for modes ``1..M``).
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -339,6 +378,7 @@ class GoalDecoder(nn.Module):
             "goal_logits": logits,
             "goal_candidates": cand,
             "goal_candidates_mask": mask,
+            "goal_index": top,
         }
 
 
@@ -435,19 +475,26 @@ class EPOModel(_Base):
         return {"goals": g[:, None].expand(g.shape[0], self.cfg.modes, -1, -1)}
 
     def game_params(
-        self, scene: dict, z: torch.Tensor, goals: torch.Tensor | None = None
+        self,
+        scene: dict,
+        z: torch.Tensor,
+        goals: torch.Tensor | None = None,
+        goal_index: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Parameters ``(B, M, n_p)``: current states from the scene, goals ``(B, M, N, 2)``
         (default: :meth:`decode_goals`), predicted weights; the ``path``, ``vref`` and
         ``radius`` (games with ``AgentSpec.radius_param``) blocks from the scene's
         ``paths``, ``vref`` and ``radius`` when present (:func:`scene_reference`), else the
-        game's defaults."""
+        game's defaults. With ``lane_path="goal"`` and decoded candidates (``goal_index``
+        ``(B, N, M)``) on a scene with ``goal_lane``, each mode's ``path`` is the lane of its
+        goal (:func:`goal_paths`)."""
         B, M, N = z.shape[0], self.cfg.modes, self.N
         L = self.game.params
         p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
         cur = scene["history"][:, -1]  # (B, N, 4)
         if goals is None and self.goal_idx:
-            goals = self.decode_goals(scene, z)["goals"]
+            dec = self.decode_goals(scene, z)
+            goals, goal_index = dec["goals"], dec.get("goal_index")
         for i, a in enumerate(self.game.agent_names):
             p[..., L[f"x0.{a}"].slice] = cur[:, None, i].to(z.dtype)
             if f"goal.{a}" in L:
@@ -457,6 +504,13 @@ class EPOModel(_Base):
                 if f"{block}.{a}" in L and field in scene:
                     ref = scene_reference(scene, field, i, L[f"{block}.{a}"].size)
                     p[..., L[f"{block}.{a}"].slice] = ref.to(z.dtype)[:, None]
+        if self.cfg.lane_path == "goal" and goal_index is not None:
+            names = self.game.agent_names
+            if all(f"path.{a}" in L for a in names) and {"goal_lane", "paths"} <= scene.keys():
+                size = L[f"path.{names[0]}"].size
+                per_mode = goal_paths(scene, goal_index, size).to(z.dtype)  # (B, N, M, size)
+                for i, a in enumerate(names):
+                    p[..., L[f"path.{a}"].slice] = per_mode[:, i]
         w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
         p = p.index_copy(-1, self.own_idx.to(z.device), w_own)
@@ -481,7 +535,7 @@ class EPOModel(_Base):
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
         goal_out = self.decode_goals(scene, z)
-        p = self.game_params(scene, z, goal_out.get("goals"))
+        p = self.game_params(scene, z, goal_out.get("goals"), goal_out.get("goal_index"))
         u0 = self.initial_strategies(z)
         out = self.layer(p.double(), u0.double())
         x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0

@@ -174,6 +174,9 @@ class TrainConfig:
                     raise SpecError(
                         f"train.{key}", f"unknown field(s) {unknown}; allowed: {sorted(names)}"
                     )
+                if key == "model" and "lane_path" not in sub:
+                    # saved before ModelConfig.lane_path existed: ours used the current lane
+                    sub = {**sub, "lane_path": "current"}
                 d[key] = klass(**sub)
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - names)

@@ -308,3 +308,61 @@ def test_game_and_training_steps(data, tmp_path):
         args += ["--batch-size", "16", "--no-progress", *extra, *sets]
         assert main(args) == 0
         assert (run / "checkpoint.pt").exists()
+
+
+def test_lane_path_follows_each_modes_goal(data):
+    """The paper's c_lane: each mode's ``path`` block is the lane its goal candidate lies on
+    (App. F.3), against a per-sample, per-agent, per-mode loop over the stored fields; a
+    candidate on a lane boundary keeps the current lane; ``lane_path="current"`` and runs
+    saved before the setting existed keep the current lane in every mode."""
+    import torch
+
+    from learning.data import SceneDataset
+    from learning.models import ModelConfig, build_model
+    from learning.train import TrainConfig
+
+    with SceneDataset(data, "train") as sd:
+        game, batch = sd.game, sd.batch(np.arange(min(len(sd), 12)))
+        raw = sd.reader.read(np.arange(len(batch["index"])))
+    B, N, P = batch["paths"].shape[:3]
+    lanes = batch["lanes"].numpy()
+    assert lanes.shape[1] == 3 * N and batch["goal_lane"].dtype == torch.int64
+    # the stored fields, read directly: candidate g of agent i lies on lanes[3 i + lane]
+    on = raw["goal_candidate_on_lane"].astype(bool)
+    assert not on.all()  # the test data has candidates on a boundary (no neighbouring lane)
+    torch.manual_seed(0)
+    small = dict(hist_width=8, hist_layers=1, lane_width=8, global_width=16, heads=2)
+    cfg = ModelConfig(kind="epo", modes=5, goal_decoder="candidates", dec_width=16, **small)
+    model = build_model(cfg, game).eval()
+    L = game.params
+    with torch.no_grad():
+        z = model.encoder(batch)
+        dec = model.decode_goals(batch, z)
+        top = dec["goal_index"].numpy()
+        p = model.game_params(batch, z).numpy()
+        p_cur = build_model(ModelConfig(**{**cfg.to_dict(), "lane_path": "current"}), game)
+        p_cur.load_state_dict(model.state_dict())
+        p_cur = p_cur.eval().game_params(batch, z).numpy()
+    changed = 0
+    for b in range(B):
+        for i in range(N):
+            sl = L[f"path.v{i}"].slice
+            for m in range(5):
+                g = top[b, i, m]
+                c = raw["goal_candidate_lane"][b, i, g]
+                want = lanes[b, 3 * i + c] if on[b, i, g] else batch["paths"][b, i].numpy()
+                np.testing.assert_array_equal(p[b, m, sl], want.reshape(-1))
+                np.testing.assert_array_equal(p_cur[b, m, sl], batch["paths"][b, i].reshape(-1))
+                np.testing.assert_array_equal(
+                    dec["goals"][b, m, i].numpy(), batch["goal_candidates"][b, i, g].numpy()
+                )
+                changed += bool(on[b, i, g] and c != 1)
+    assert changed > 0  # some modes' goals lie on a neighbouring lane
+    # the current lane is the middle lane of the agent's three
+    np.testing.assert_array_equal(lanes[:, 1::3], batch["paths"].numpy())
+    # a run saved before the setting existed was trained with the current lane
+    saved = TrainConfig(model=cfg).to_dict()
+    del saved["model"]["lane_path"]
+    assert TrainConfig.from_dict(saved).model.lane_path == "current"
+    with pytest.raises(Exception, match="model.lane_path"):
+        ModelConfig(lane_path="left")
