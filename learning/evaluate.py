@@ -57,7 +57,8 @@ def method_label(cfg: ModelConfig | None) -> str:
 
     Runs with one label are one table row, so every setting that makes ours another method
     is in it: the ablations, another number of LM steps than the paper's 2, decoded goals,
-    the implicit backward pass, another collision reach.
+    the implicit backward pass, another collision reach, the current lane as every mode's
+    path where the goals are decoded candidates.
     """
     if cfg is None:
         return "CV"
@@ -76,6 +77,8 @@ def method_label(cfg: ModelConfig | None) -> str:
             label += f" ({cfg.backward})"
         if cfg.collision_margin is not None:
             label += f" (collision margin {cfg.collision_margin:g} m)"
+        if cfg.lane_path != "goal" and cfg.goal_decoder == "candidates":
+            label += " (current-lane path)"  # runs saved before lane_path (learning.models)
     return label
 
 

@@ -119,6 +119,12 @@ def test_method_labels():
         method_label(ModelConfig(kind="epo", collision_margin=1.0))
         == "V-LSTM + Ours (collision margin 1 m)"
     )
+    # ours with the current lane for every mode (runs saved before lane_path) is its own row
+    old = dict(kind="epo", goal_decoder="candidates", lane_path="current")
+    assert (
+        method_label(ModelConfig(**old)) == "V-LSTM + Ours (goals: candidates) (current-lane path)"
+    )
+    assert method_label(ModelConfig(kind="epo", lane_path="current")) == "V-LSTM + Ours"
 
 
 @pytest.fixture(scope="module")
