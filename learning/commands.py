@@ -1,7 +1,7 @@
-"""``epo train``, ``epo evaluate``, ``epo show-predictions``, ``epo pipeline``.
+"""``epo train``, ``evaluate``, ``show-predictions``, ``show-weights``, ``pipeline``.
 
-Thin click layer over :mod:`learning.train`, :mod:`learning.evaluate`,
-:mod:`learning.show` and :mod:`learning.pipeline`; torch is imported only when a command
+Thin click layer over :mod:`learning.train`, :mod:`learning.evaluate`, :mod:`learning.show`,
+:mod:`learning.spider` and :mod:`learning.pipeline`; torch is imported only when a command
 runs. Input errors (missing dataset, unknown split, corrupt checkpoint, unknown model)
 raise the toolkit's typed errors, which :func:`scenarios.cli.main` prints as one
 ``error:`` line naming the field, with exit status 2.
@@ -261,6 +261,36 @@ def show_cmd(run, data, split, index, out, checkpoint):
     click.echo(
         f"wrote {show_predictions(run, data, index, out, split=split, checkpoint=checkpoint)}"
     )
+
+
+@click.command("show-weights")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
+@click.option(
+    "--split", type=click.Choice(SPLITS), default="test", show_default=True, help="Split to use."
+)
+@click.option(
+    "--index",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Sample index in the split, 0 to its size - 1 (negative indices are refused).",
+)
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("weights.png"),
+    show_default=True,
+)
+@click.option(
+    "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
+)
+def show_weights_cmd(run, data, split, index, out, checkpoint):
+    """Spider plots of ours' predicted weights per mode, one panel per agent (paper Fig. 3c)."""
+    from .spider import weight_spider
+
+    click.echo(f"wrote {weight_spider(run, data, index, out, split=split, checkpoint=checkpoint)}")
 
 
 @click.command("pipeline")

@@ -6,12 +6,16 @@ weight as one closed polygon per joint mode, labelled with the mode's probabilit
 game's solution does not change when all weights of a mode are scaled together, so each
 mode's weights are divided by their geometric mean over the whole scene before plotting,
 and the radius is ``log10`` of that ratio: compare shapes and agents, not absolute sizes.
+An agent's panel is titled "(lane changer)" when the sample's ``lane_change`` field (exiD
+layout) flags it. ``epo show-weights`` is the command line of :func:`weight_spider`.
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,9 +25,30 @@ from epo_casadi.errors import SpecError
 from .evaluate import predict
 from .show import load_sample
 
-__all__ = ["spider_weights", "weight_spider"]
+__all__ = ["SpiderPlot", "agent_titles", "spider_weights", "weight_spider"]
 
 MODE_COLORS = ["tab:red", "tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:pink"]
+#: radius of the smallest drawn weight: a polygon never touches the centre
+MARGIN = 0.2
+
+
+@dataclass(frozen=True)
+class SpiderPlot:
+    """What :func:`weight_spider` drew (``return_data=True``).
+
+    ``weights[m, i, f]`` is :func:`spider_weights` of the sample's predicted parameters
+    (mode ``m``, agent ``i``, axis ``axes[f]``); the radius drawn is ``weights - offset``.
+    ``probs`` ``(M,)`` are the modes' scene probabilities (the legend's ``p``), ``titles`` the
+    panel titles per agent, ``figure`` the matplotlib Figure written to ``path``.
+    """
+
+    path: Path
+    weights: np.ndarray
+    axes: list[str]
+    probs: np.ndarray
+    offset: float
+    titles: list[str]
+    figure: Any
 
 
 def spider_weights(params: np.ndarray, game) -> tuple[np.ndarray, list[str]]:
@@ -51,6 +76,20 @@ def spider_weights(params: np.ndarray, game) -> tuple[np.ndarray, list[str]]:
     return np.log10(np.clip(w, 1e-12, None) / gmean[:, None, None]), feats + ["collision"]
 
 
+def agent_titles(sample: dict, agents: list[str]) -> list[str]:
+    """Panel titles: the agent names, with " (lane changer)" for every agent the sample's
+    ``lane_change`` field ``(N,)`` flags; no label when the dataset has no such field."""
+    flags = np.zeros(len(agents), bool)
+    if "lane_change" in sample:
+        lc = np.asarray(sample["lane_change"]).reshape(-1).astype(bool)
+        if lc.shape != flags.shape:
+            raise SpecError(
+                "lane_change", f"expected one flag per agent ({len(agents)}), got {lc.shape}"
+            )
+        flags = lc
+    return [f"{a} (lane changer)" if f else str(a) for a, f in zip(agents, flags, strict=True)]
+
+
 def weight_spider(
     run_dir: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -58,29 +97,47 @@ def weight_spider(
     out_png: str | os.PathLike,
     split: str = "test",
     checkpoint: str = "best",
-) -> Path:
-    """Draw the spider plots of ours (``run_dir``) on sample ``index`` of ``split`` to ``out_png``."""
+    *,
+    return_data: bool = False,
+) -> Path | SpiderPlot:
+    """Draw the spider plots of ours (``run_dir``) on sample ``index`` of ``split`` to ``out_png``.
+
+    Returns the path written, or with ``return_data=True`` a :class:`SpiderPlot` (the plotted
+    weights, offset, probabilities, titles and the Figure). Input errors as ``epo
+    show-predictions`` (:func:`learning.show.load_sample`, :func:`learning.train.load_model`);
+    a run that is not ours is refused with :class:`SpecError` naming ``run_dir``.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from scenarios.dataset import SplitReader
+    from scenarios.files import write_atomic
 
     from .train import load_model
 
     game, batch = load_sample(data_dir, split, index)
+    with SplitReader(data_dir, split) as r:
+        raw = r[int(index)]
+        agents = r.manifest.get("meta", {}).get("agents") or list(game.agent_names)
+    titles = agent_titles(raw, list(agents))
     model, cfg, _ = load_model(run_dir, game, which=checkpoint)
     if cfg.model.kind != "epo":
-        raise SpecError("run_dir", f"expected a run of ours (kind 'epo'), got {cfg.model.kind!r}")
+        raise SpecError(
+            "run_dir",
+            f"expected a run of ours (kind 'epo'), got kind {cfg.model.kind!r} in {run_dir}",
+        )
     with torch.no_grad():
         _, probs, out = predict(model, batch)
     w, axes = spider_weights(out["params"][0].double().numpy(), game)
-    probs = probs[0].numpy()
+    probs = probs[0].double().numpy()
     M, N, F = w.shape
     ang = np.linspace(0, 2 * np.pi, F, endpoint=False)
-    lo, hi = np.nanmin(w) - 0.2, np.nanmax(w) + 0.2
+    lo, hi = np.nanmin(w) - MARGIN, np.nanmax(w) + MARGIN
     fig = Figure(figsize=(4.2 * N, 4.8))
     FigureCanvasAgg(fig)
     for i in range(N):
         ax = fig.add_subplot(1, N, i + 1, projection="polar")
-        for m in np.argsort(-probs):
+        for m in np.argsort(-probs, kind="stable"):
             r = np.r_[w[m, i], w[m, i, :1]] - lo
             ax.plot(
                 np.r_[ang, ang[:1]],
@@ -96,11 +153,12 @@ def weight_spider(
         ax.set_yticks(ticks - lo)
         ax.set_yticklabels([f"1e{int(t)}" for t in ticks], fontsize=6)
         ax.set_ylim(0, hi - lo)
-        ax.set_title(f"{game.agent_names[i]}" + (" (lane changer)" if i == 0 else ""), fontsize=10)
+        ax.set_title(titles[i], fontsize=10)
         if i == 0:
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(-0.35, 1.25))
     fig.suptitle(f"weights / geometric mean of the mode's weights, {split}[{index}]", fontsize=10)
     out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=100, bbox_inches="tight")
-    return out_png
+    write_atomic(out_png, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    if not return_data:
+        return out_png
+    return SpiderPlot(out_png, w, axes, probs, float(lo), titles, fig)

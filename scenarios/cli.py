@@ -55,6 +55,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "learning.commands:show_cmd",
         "Draw one sample's predicted modes and weights.",
     ),
+    "show-weights": (
+        "learning.commands:show_weights_cmd",
+        "Spider plots of ours' weights per mode and agent.",
+    ),
     "pipeline": (
         "learning.commands:pipeline_cmd",
         "Small end to end: data, train, evaluate, figures.",
