@@ -31,13 +31,15 @@ Traffic (per recording, seeded)
     (car 85 %, truck 15 %; trucks only in the two right-most lanes and on ramps), length
     and width (cars 4.2-5.2 x 1.75-2.0 m, trucks 10-16.5 x 2.5 m), desired speed (cars
     0.85-1.15 x the limit, capped at 45 m/s; trucks 22-25 m/s), IDM time headway
-    (1.0-2.0 s), comfortable acceleration, jam distance (2-4 m plus half the own length
-    plus 2.5 m: highway-env measures gaps centre to centre), MOBIL politeness (0-0.5) and threshold
+    (1.0-2.0 s), comfortable acceleration, jam distance (2-4 m; the IDM runs on bumper-to-bumper
+    gaps, where highway-env's measures between centres), MOBIL politeness (0-0.5) and threshold
     (0.1-0.4 m/s^2). Vehicles enter at the upstream ends (Poisson arrivals, 900-1600
     veh/h/lane, ramps 500-1000 veh/h, 30 % of the main-road vehicles at an exit take it)
     with a free entry gap, and leave at the downstream ends. The road fills during
-    ``warmup`` s before frame 0. A vehicle in a crash (rare) is removed at once (its track
-    ends), as real data has none.
+    ``warmup`` s before frame 0. Speeds never go below zero (braking ends at standstill).
+    Crashes are detected with each vehicle's own length and width (highway-env's crash
+    pre-check radius is set from them); a vehicle in a crash (rare) is removed at once (its
+    track ends), as real data has none.
 
 Recording (exiD layout, :mod:`scenarios.exid` docstring)
     ``frame_rate`` Hz (25, as exiD) = the simulation step. Positions and headings are the
@@ -54,8 +56,9 @@ Limits (what real exiD has and this does not): no sensor noise or tracking error
 tracks are smoothed detections), no motorcycles, vans or buses, no curved main roads or
 cloverleaf loops, no weaving sections with on- and off-ramp together, IDM/MOBIL drivers
 (no cooperative yielding beyond MOBIL politeness, no forced merges at standstill beyond
-waiting at the lane end), highway-env's kinematic model for trucks as for cars, and
-gaps measured centre to centre by highway-env's IDM (compensated by the jam distance).
+waiting at the lane end), and highway-env's kinematic model for trucks as for cars.
+On-ramp vehicles that find no gap wait at the end of the acceleration lane and queue behind
+each other, bumper gaps of 2-4 m (docs/exid.md: the test map's scenes).
 
 Deterministic for a seed: recording ``i`` uses ``SeedSequence(seed, spawn_key=(i,))``;
 existing complete recordings are kept (a stopped run resumes).
@@ -80,6 +83,8 @@ __all__ = [
     "LOCATIONS",
     "HighwayOptions",
     "build_network",
+    "driver_class",
+    "size_vehicle",
     "write_map",
     "record",
     "generate_raw",
@@ -343,6 +348,25 @@ def driver_class():
                 if self.mobil(li):
                     self.target_lane_index = li
 
+        def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
+            # the IDM on bumper-to-bumper gaps: highway-env's free-road term, and the
+            # interaction term -a (s* / s)^2 with s the gap between the bumpers (highway-env
+            # uses the distance between the centres) and s* its desired gap (jam distance
+            # DISTANCE_WANTED plus the speed terms), so that a queue stands DISTANCE_WANTED
+            # apart behind cars and trucks alike
+            acc = super().acceleration(ego_vehicle, None, rear_vehicle)
+            if front_vehicle is None or ego_vehicle is None:
+                return acc
+            s = ego_vehicle.lane_distance_to(front_vehicle)
+            s -= 0.5 * (ego_vehicle.LENGTH + front_vehicle.LENGTH)
+            ratio = self.desired_gap(ego_vehicle, front_vehicle) / max(s, 0.1)
+            return acc - self.COMFORT_ACC_MAX * ratio**2
+
+        def step(self, dt: float) -> None:
+            super().step(dt)
+            if self.speed < 0.0:  # IDM braking ends at standstill: vehicles never reverse
+                self.speed = 0.0
+
         def _safe(self, lane_index) -> bool:
             pre, fol = self.road.neighbour_vehicles(self, lane_index)
             b = self.LANE_CHANGE_MAX_BRAKING_IMPOSED * (1.0 + 0.75 * self.urgency)
@@ -355,6 +379,14 @@ def driver_class():
             return True
 
     return RampDriver
+
+
+def size_vehicle(v, length: float, width: float) -> None:
+    """Give a highway-env vehicle its length and width, and the crash pre-check its reach:
+    highway-env caches ``diagonal`` at construction (from the class's 5 x 2 m), so a longer
+    vehicle set afterwards would not be checked against vehicles beyond that reach."""
+    v.LENGTH, v.WIDTH = float(length), float(width)
+    v.diagonal = float(math.hypot(length, width))
 
 
 # --------------------------------------------------------------------------------------
@@ -442,10 +474,10 @@ def record(loc: Location, opts: HighwayOptions, seed: np.random.SeedSequence, ri
             target_lane_index=lane_index, target_speed=v0, route=route,
             timer=float(rng.uniform(0.0, 1.0)),
         )  # fmt: skip
-        v.LENGTH, v.WIDTH = float(length), float(width)
+        size_vehicle(v, length, width)
         v.TIME_WANTED = float(rng.uniform(1.0, 2.0))
         v.COMFORT_ACC_MAX = float(rng.uniform(0.8, 1.5) if truck else rng.uniform(1.5, 3.0))
-        v.DISTANCE_WANTED = float(rng.uniform(2.0, 4.0) + 0.5 * length + 2.5)
+        v.DISTANCE_WANTED = float(rng.uniform(2.0, 4.0))  # bumper to bumper (acceleration)
         v.POLITENESS = float(rng.uniform(0.0, 0.5))
         v.LANE_CHANGE_MIN_ACC_GAIN = float(rng.uniform(0.1, 0.4))
         v.want, v.aux, v.aux_end = want, aux, aux_end
