@@ -609,46 +609,91 @@ def _frames(rows, info, loc: Location, opts: HighwayOptions, rid: int):
     return tracks, meta, rec
 
 
+def _record_files(out: str, lid: int, opts: HighwayOptions, seed: int, i: int) -> tuple:
+    """Simulate recording ``i`` at location ``lid`` and write its three CSV files atomically;
+    ``(i, tracks, rows, crashes)``. One work unit of :func:`generate_raw` (a pool worker's)."""
+    out = FilePath(out)
+    (tracks, meta, rec), crashes = record(
+        LOCATIONS[lid], opts, np.random.SeedSequence(int(seed), spawn_key=(i,)), i
+    )
+    for df, n in zip((tracks, meta, rec), ("tracks", "tracksMeta", "recordingMeta"), strict=True):
+        _write_atomic(
+            out / "data" / f"{i:02d}_{n}.csv", df.to_csv(index=False, float_format="%.4f")
+        )
+    return i, len(meta), len(tracks), crashes
+
+
 def generate_raw(
-    out: str | os.PathLike, opts: HighwayOptions, seed: int = 0, progress: bool = False
+    out: str | os.PathLike,
+    opts: HighwayOptions,
+    seed: int = 0,
+    progress: bool = False,
+    workers: int = 1,
 ) -> dict:
     """Write the raw set (module docstring) into ``out``: maps of the used locations and the
-    recordings ``0 .. recordings - 1`` (existing complete ones are kept). Returns counts:
-    ``recordings``, ``written``, ``tracks``, ``rows``, ``crashes``, ``seconds``."""
+    recordings ``0 .. recordings - 1`` (existing complete ones are kept). ``workers`` > 1
+    simulates that many recordings at a time in worker processes (the files are the same:
+    recording ``i`` depends only on ``seed`` and ``i``; each is written atomically, so an
+    interrupted run keeps every finished recording). Returns counts: ``recordings``,
+    ``written``, ``tracks``, ``rows``, ``crashes``, ``seconds``."""
     import time
 
     check_number("seed", seed, lo=0, integer=True)
+    check_number("workers", workers, lo=1, integer=True)
     t0 = time.perf_counter()
     out = FilePath(out)
     (out / "data").mkdir(parents=True, exist_ok=True)
     for lid in sorted(set(opts.locations)):
         loc = LOCATIONS[lid]
         write_map(loc, out / "maps" / "lanelet2" / f"{lid}_{loc.name}.osm")
-    todo = range(opts.recordings)
+
+    def complete(i: int) -> bool:
+        names = ("tracks", "tracksMeta", "recordingMeta")
+        return all((out / "data" / f"{i:02d}_{n}.csv").is_file() for n in names)
+
+    todo = [i for i in range(opts.recordings) if not complete(i)]
+    units = [(str(out), opts.locations[i % len(opts.locations)], opts, int(seed), i) for i in todo]
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=opts.recordings, unit="recording", desc=f"highway -> {out}")
+        bar.update(opts.recordings - len(todo))
     stats = dict(recordings=opts.recordings, written=0, tracks=0, rows=0, crashes=0)
-    for i in todo:
-        loc = LOCATIONS[opts.locations[i % len(opts.locations)]]
-        names = [
-            out / "data" / f"{i:02d}_{n}.csv" for n in ("tracks", "tracksMeta", "recordingMeta")
-        ]
-        if not all(p.is_file() for p in names):
-            (tracks, meta, rec), crashes = record(
-                loc, opts, np.random.SeedSequence(int(seed), spawn_key=(i,)), i
-            )
-            for df, p in zip((tracks, meta, rec), names, strict=True):
-                _write_atomic(p, df.to_csv(index=False, float_format="%.4f"))
-            stats["written"] += 1
-            stats["tracks"] += len(meta)
-            stats["rows"] += len(tracks)
-            stats["crashes"] += crashes
+
+    def count(res: tuple) -> None:
+        _, n_tracks, n_rows, crashes = res
+        stats["written"] += 1
+        stats["tracks"] += n_tracks
+        stats["rows"] += n_rows
+        stats["crashes"] += crashes
         if bar is not None:
             bar.update(1)
-    if bar is not None:
-        bar.close()
+
+    try:
+        if workers <= 1 or len(units) <= 1:
+            for u in units:
+                count(_record_files(*u))
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            from .dataset import _single_threaded_children, _worker_init
+
+            with _single_threaded_children():
+                ex = ProcessPoolExecutor(
+                    max_workers=min(workers, len(units)),
+                    mp_context=mp.get_context("spawn"),
+                    initializer=_worker_init,
+                    initargs=(os.getpid(),),
+                )
+            try:
+                for f in as_completed([ex.submit(_record_files, *u) for u in units]):
+                    count(f.result())
+            finally:  # interrupted or failed: nothing half-written stays (atomic files)
+                ex.shutdown(wait=True, cancel_futures=True)
+    finally:
+        if bar is not None:
+            bar.close()
     stats["seconds"] = time.perf_counter() - t0
     return stats

@@ -258,6 +258,16 @@ def test_generator_is_deterministic(tmp_path):
         assert (tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes()
     a = (tmp_path / "a" / "data" / "00_tracks.csv").read_bytes()
     assert a != (tmp_path / "c" / "data" / "00_tracks.csv").read_bytes()
+    # two worker processes write the same files as one process
+    o2 = HighwayOptions(recordings=2, duration=2.0, warmup=4.0, frame_rate=10.0, locations=(3,))
+    generate_raw(tmp_path / "d", o2, seed=5)
+    st = generate_raw(tmp_path / "e", o2, seed=5, workers=2)
+    assert st["written"] == 2
+    for n in ("00_tracks.csv", "01_tracks.csv", "01_tracksMeta.csv", "01_recordingMeta.csv"):
+        assert (tmp_path / "d" / "data" / n).read_bytes() == (
+            tmp_path / "e" / "data" / n
+        ).read_bytes()
+    assert generate_raw(tmp_path / "e", o2, seed=5, workers=2)["written"] == 0  # all kept
 
 
 def test_game_and_training_steps(data, tmp_path):

@@ -242,9 +242,16 @@ def exid(raw, overrides, **run):
     help="Override a generator option (repeatable), e.g. --set locations=[0,1,2] (docs/exid.md).",
 )
 @click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Recordings simulated at a time, in worker processes (the same files for any number).",
+)
+@click.option(
     "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
 )
-def highway_raw(out, recordings, seed, duration, overrides, progress):
+def highway_raw(out, recordings, seed, duration, overrides, workers, progress):
     """Recordings round-robin over the locations (on- and off-ramps, 2 and 3 lanes)."""
     from scenarios.highway import HighwayOptions, generate_raw
     from scenarios.sim.common import build_options
@@ -255,7 +262,7 @@ def highway_raw(out, recordings, seed, duration, overrides, progress):
         opts = build_options(HighwayOptions, "highway", kw)
     except TypeError as e:
         raise SpecError("--set", str(e)) from None
-    st = generate_raw(out, opts, seed=seed, progress=progress)
+    st = generate_raw(out, opts, seed=seed, progress=progress, workers=workers)
     click.echo(
         f"{out}: {st['recordings']} recordings ({st['written']} written: {st['tracks']} tracks, "
         f"{st['rows']} rows, {st['crashes']} crashes removed) in {st['seconds']:.1f} s"
