@@ -14,7 +14,9 @@
 # ONLY (eval: a regex on the group names of RUNS/chosen.csv, e.g. '^tgl-'), EPO (the epo
 # command; default the repository's .venv/bin/epo).
 # Runs are named {model}-{backbone}-lr{LR}-s{SEED}: a finished one (EPOCHS rows in
-# metrics.csv) is skipped, an unfinished one resumes from its checkpoint.
+# metrics.csv) is skipped, an unfinished one resumes from its checkpoint. Two drivers may
+# share RUNS when their MODELS / BACKBONES are disjoint (e.g. TGL on one core, the rest on
+# the other: MODELS=tgl ... & MODELS="vlstm sc epo" ...).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 CMD=${1:?usage: bench/exid_tab2.sh train|eval|table [DATA] [RUNS]}
@@ -34,7 +36,8 @@ train() {  # name model backbone seed lr [extra args]
   log "end $name rc=$rc"
 }
 choose() {  # group -> the rate with the lowest best-epoch val minSADE among its seed-0 runs
-  "$PY" - "$R" "$1" "$E" <<'PY'
+  # (under a lock: two drivers on disjoint MODELS / BACKBONES may share RUNS)
+  flock "$R/chosen.lock" "$PY" - "$R" "$1" "$E" <<'PY'
 import csv, glob, sys
 R, group, epochs = sys.argv[1], sys.argv[2], int(sys.argv[3])
 best = {}
