@@ -231,29 +231,44 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
         click.echo("wrote " + ", ".join(str(p) for p in paths))
 
 
+def _sample_figure_options(default_out: str):
+    """RUN, --data, --split, --index, --out and --checkpoint of the one-sample figures."""
+
+    def wrap(f):
+        for deco in reversed(
+            [
+                click.argument("run", type=click.Path(path_type=Path)),
+                click.option(
+                    "--data", required=True, type=click.Path(path_type=Path),
+                    help="Dataset directory.",
+                ),
+                click.option(
+                    "--split", type=click.Choice(SPLITS), default="test", show_default=True,
+                    help="Split to use.",
+                ),
+                click.option(
+                    "--index", type=int, default=0, show_default=True,
+                    help="Sample index in the split, 0 to its size - 1 (negative indices are "
+                    "refused).",
+                ),
+                click.option(
+                    "--out", "out", type=click.Path(dir_okay=False, path_type=Path),
+                    default=Path(default_out), show_default=True,
+                ),
+                click.option(
+                    "--checkpoint", type=click.Choice(["best", "last"]), default="best",
+                    show_default=True,
+                ),
+            ]
+        ):  # fmt: skip
+            f = deco(f)
+        return f
+
+    return wrap
+
+
 @click.command("show-predictions")
-@click.argument("run", type=click.Path(path_type=Path))
-@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
-@click.option(
-    "--split", type=click.Choice(SPLITS), default="test", show_default=True, help="Split to use."
-)
-@click.option(
-    "--index",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Sample index in the split, 0 to its size - 1 (negative indices are refused).",
-)
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("predictions.png"),
-    show_default=True,
-)
-@click.option(
-    "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
-)
+@_sample_figure_options("predictions.png")
 def show_cmd(run, data, split, index, out, checkpoint):
     """Draw one sample with a run's predicted modes, probabilities and (ours) weights; RUN may be cv."""
     from .show import show_predictions
@@ -264,28 +279,7 @@ def show_cmd(run, data, split, index, out, checkpoint):
 
 
 @click.command("show-weights")
-@click.argument("run", type=click.Path(path_type=Path))
-@click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset directory.")
-@click.option(
-    "--split", type=click.Choice(SPLITS), default="test", show_default=True, help="Split to use."
-)
-@click.option(
-    "--index",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Sample index in the split, 0 to its size - 1 (negative indices are refused).",
-)
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("weights.png"),
-    show_default=True,
-)
-@click.option(
-    "--checkpoint", type=click.Choice(["best", "last"]), default="best", show_default=True
-)
+@_sample_figure_options("weights.png")
 def show_weights_cmd(run, data, split, index, out, checkpoint):
     """Spider plots of ours' predicted weights per mode, one panel per agent (paper Fig. 3c)."""
     from .spider import weight_spider

@@ -1,4 +1,4 @@
-"""Small games shared by the tests."""
+"""Small games and CLI helpers shared by the tests."""
 
 from __future__ import annotations
 
@@ -145,3 +145,21 @@ FAMILY = (
     ("merge", 4, "unicycle", 50.0, 6, True),
     ("crossing", 2, "bicycle", 100.0, 7, False),
 )
+
+
+def cli(capsys, *args) -> tuple[int, str, str]:
+    """``epo ARGS`` in-process: exit status, stdout, stderr."""
+    from scenarios.cli import main
+
+    rc = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def one_error_line(rc: int, err: str, *words: str) -> str:
+    """Exit 2, one ``error:`` line on stderr that contains ``words``, no traceback."""
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), (rc, err)
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]

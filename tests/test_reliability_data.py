@@ -31,28 +31,13 @@ from learning.train import (
     train,
 )
 from scenarios import dataset as ds
-from scenarios.cli import main
 from scenarios.dataset import DatasetError
+from tests.helpers import cli, one_error_line
 from tests.test_dataset import ToyScenario
 from tests.test_models import TINY, synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_SET = [f"--set={k}={v}" for k, v in TINY.items()]
-
-
-def cli(capsys, *args) -> tuple[int, str, str]:
-    rc = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def one_error_line(rc: int, err: str, *words: str) -> str:
-    """Exit 2, one ``error:`` line on stderr that contains ``words``, no traceback."""
-    lines = err.strip().splitlines()
-    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), (rc, err)
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -16,25 +16,10 @@ from learning.data import SceneDataset
 from learning.models import ModelConfig
 from learning.spider import MARGIN, agent_titles, spider_weights, weight_spider
 from learning.train import TrainConfig, train
-from scenarios.cli import main
+from tests.helpers import cli, one_error_line
 from tests.test_models import TINY, synthetic_dataset
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-
-def cli(capsys, *args) -> tuple[int, str, str]:
-    rc = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def one_error_line(rc: int, err: str, *words: str) -> str:
-    """Exit 2, one ``error:`` line on stderr containing ``words``, no traceback."""
-    lines = err.strip().splitlines()
-    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), (rc, err)
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
