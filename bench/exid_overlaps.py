@@ -51,9 +51,8 @@ from epo_casadi.errors import EpoError  # noqa: E402
 from learning.baselines import ConstantVelocity  # noqa: E402
 from learning.data import SceneDataset  # noqa: E402
 from learning.metrics import (  # noqa: E402
-    box_overlap,
+    box_hits,
     marginal_to_joint,
-    motion_headings,
     overlap_rate_boxes,
 )
 from learning.scoring import boxes, predict  # noqa: E402
@@ -87,15 +86,8 @@ def collect(data: SceneDataset, runs: dict[str, str], batch_size: int = 256) -> 
 
 def pairwise(pos, bx, margin=0.0):
     """Box hits ``(B, N, N, T)`` of trajectories ``pos`` ``(B, N, T, 2)`` with the metric's
-    headings and boxes; each box grown by ``margin`` (a number or ``(B, N, N, T)``) in
-    length and width. Also returns the headings ``(B, N, T)``."""
-    h = motion_headings(pos, bx["start"], bx["heading0"])
-    L, W = bx["length"][..., None], bx["width"][..., None]
-    a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
-    hit = box_overlap(
-        pos[a], h[a], L[a] + margin, W[a] + margin, pos[b], h[b], L[b] + margin, W[b] + margin
-    )
-    return hit, h
+    headings and boxes, each grown by ``margin`` in length and width, and the headings."""
+    return box_hits(pos, bx["length"], bx["width"], bx["start"], bx["heading0"], grow=margin)
 
 
 def clearance(pos, bx, hi: float = 64.0, iters: int = 14) -> torch.Tensor:

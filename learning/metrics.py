@@ -48,6 +48,7 @@ __all__ = [
     "min_sfde",
     "overlap_rate",
     "overlap_rate_boxes",
+    "box_hits",
     "box_overlap",
     "motion_headings",
     "marginal_to_joint",
@@ -217,11 +218,31 @@ def overlap_rate_boxes(
     if mask is None:
         mask = torch.ones(B, N, dtype=torch.bool, device=pred.device)
     best = pred[torch.arange(B), probs.argmax(dim=1)]  # (B, N, T, 2)
-    h = motion_headings(best, start, heading0, min_step)  # (B, N, T)
-    a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
-    hit = box_overlap(best[a], h[a], L[a], W[a], best[b], h[b], L[b], W[b])  # (B, N, N, T)
-    pair = mask[:, :, None] & mask[:, None, :] & ~torch.eye(N, dtype=torch.bool)[None]
+    hit, _ = box_hits(best, L[..., 0], W[..., 0], start, heading0, min_step)  # (B, N, N, T)
+    eye = torch.eye(N, dtype=torch.bool, device=pred.device)
+    pair = mask[:, :, None] & mask[:, None, :] & ~eye[None]
     return (hit.any(-1) & pair).flatten(1).any(-1).to(pred.dtype)
+
+
+def box_hits(
+    pos, length, width, start=None, heading0=None, min_step: float = 0.05, grow=0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which agents' boxes intersect at each step: ``(B, N, N, T)`` (symmetric, the diagonal
+    True), and the box headings ``(B, N, T)`` (:func:`motion_headings`).
+
+    ``pos`` ``(B, N, T, 2)`` one joint trajectory per sample; ``length``, ``width`` ``(B, N)``;
+    ``start``, ``heading0`` as in :func:`overlap_rate_boxes`; ``grow`` (a number or
+    ``(B, N, N, T)``) is added to every box's length and width (clearance by bisection).
+    """
+    pos = _t(pos)
+    h = motion_headings(pos, start, heading0, min_step)
+    L = _t(length).to(pos.dtype)[..., None]  # (B, N, 1): broadcast over steps
+    W = _t(width).to(pos.dtype)[..., None]
+    a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
+    hit = box_overlap(
+        pos[a], h[a], L[a] + grow, W[a] + grow, pos[b], h[b], L[b] + grow, W[b] + grow
+    )
+    return hit, h
 
 
 def marginal_to_joint(pred, probs):

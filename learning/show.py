@@ -32,12 +32,18 @@ MODE_COLORS = ["tab:red", "tab:blue", "tab:orange", "tab:green", "tab:cyan", "ta
 
 
 def load_sample(data_dir: str | os.PathLike, split: str, index: int) -> tuple:
-    """``(game, batch)`` of sample ``index`` of ``split`` (a batch of one); a non-integer
-    ``index`` is refused with :class:`SpecError`."""
+    """``(game, batch, raw, agents)`` of sample ``index`` of ``split``: the dataset's game,
+    the sample as a batch of one, its stored fields as written (e.g. ``lane_change``) and the
+    agents' display names (the manifest's ``meta.agents``, else the game's). A non-integer
+    ``index`` is refused with :class:`SpecError`. Shared by the one-sample figures."""
     if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
         raise SpecError("index", f"expected an integer, got {index!r}")
     with SceneDataset(data_dir, split) as data:
-        return data.game, data.batch([int(index)])
+        game, batch = data.game, data.batch([int(index)])
+    with SplitReader(data_dir, split) as r:
+        raw = r[int(index)]
+        agents = list(r.manifest.get("meta", {}).get("agents") or game.agent_names)
+    return game, batch, raw, agents
 
 
 def show_predictions(
@@ -54,10 +60,7 @@ def show_predictions(
     from matplotlib.patches import Circle
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    game, batch = load_sample(data_dir, split, index)
-    with SplitReader(data_dir, split) as r:
-        raw = r[int(index)]
-        agents = r.manifest.get("meta", {}).get("agents") or list(game.agent_names)
+    game, batch, raw, agents = load_sample(data_dir, split, index)
     if str(run_dir) == "cv" and not Path(run_dir).is_dir():
         model, label, kind = ConstantVelocity(game.K, int(raw["future"].shape[0])), "CV", "cv"
     else:

@@ -23,11 +23,10 @@ import torch
 from epo_casadi.errors import SpecError
 
 from .evaluate import predict
-from .show import load_sample
+from .show import MODE_COLORS, load_sample
 
 __all__ = ["SpiderPlot", "agent_titles", "spider_weights", "weight_spider"]
 
-MODE_COLORS = ["tab:red", "tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:pink"]
 #: radius of the smallest drawn weight: a polygon never touches the centre
 MARGIN = 0.2
 
@@ -110,16 +109,12 @@ def weight_spider(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from scenarios.dataset import SplitReader
     from scenarios.files import write_atomic
 
     from .train import load_model
 
-    game, batch = load_sample(data_dir, split, index)
-    with SplitReader(data_dir, split) as r:
-        raw = r[int(index)]
-        agents = r.manifest.get("meta", {}).get("agents") or list(game.agent_names)
-    titles = agent_titles(raw, list(agents))
+    game, batch, raw, agents = load_sample(data_dir, split, index)
+    titles = agent_titles(raw, agents)
     model, cfg, _ = load_model(run_dir, game, which=checkpoint)
     if cfg.model.kind != "epo":
         raise SpecError(

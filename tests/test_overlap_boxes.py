@@ -149,3 +149,20 @@ def test_all_metrics_switches_to_boxes_with_vehicle_sizes():
     m = all_metrics(side, gt, probs, radii, boxes=b)
     assert m["OR"].item() == 0.0 and torch.equal(m["OR_circle"], overlap_rate(side, probs, radii))
     assert boxes({"history": hist}) is None
+
+
+def test_box_hits_grow_by_hand():
+    """Two 4 x 2 m cars in a row, 1 m bumper to bumper, driving along x: growing both boxes by
+    g in length closes the gap by g (half of g at each facing bumper), so they touch at g = 1."""
+    from learning.metrics import box_hits
+
+    t = torch.arange(3, dtype=torch.float64)
+    pos = torch.stack([torch.stack([t, 0 * t], -1), torch.stack([t + 5.0, 0 * t], -1)])[None]
+    L, W = (
+        torch.full((1, 2), 4.0, dtype=torch.float64),
+        torch.full((1, 2), 2.0, dtype=torch.float64),
+    )
+    for g, want in ((0.0, False), (0.9, False), (1.1, True)):
+        hit, h = box_hits(pos, L, W, start=pos[:, :, 0] - torch.tensor([1.0, 0.0]), grow=g)
+        assert torch.equal(hit[0, 0, 1], torch.full((3,), want)) and hit[0, 0, 0].all()
+        assert torch.allclose(h, torch.zeros_like(h))  # heading along the motion
