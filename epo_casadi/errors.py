@@ -5,7 +5,15 @@ from __future__ import annotations
 import math
 import reprlib
 
-__all__ = ["EpoError", "SpecError", "OutputError", "check_number", "check_bool", "short_repr"]
+__all__ = [
+    "EpoError",
+    "SpecError",
+    "OutputError",
+    "check_number",
+    "check_bool",
+    "check_size",
+    "short_repr",
+]
 
 #: Longest message a :class:`SpecError` carries; longer ones are cut (a whole YAML structure
 #: in a message would cost minutes to build and print).
@@ -93,3 +101,26 @@ def check_bool(field: str, value) -> bool:
     if not isinstance(value, bool):
         raise SpecError(field, f"expected True or False, got {short_repr(value)}")
     return value
+
+
+def check_size(field: str, value, limit: int | float, what: str = "", *, lo: int = 1):
+    """Return ``value`` if it is an integer in ``[lo, limit]``; else :class:`SpecError`.
+
+    The one check of sizes that must be bounded before any work starts (episode and sample
+    counts, horizons, widths, estimated bytes): the message names ``field``, the value and the
+    limit, and ``what`` says what the limit protects (e.g. ``"memory"``), so a user knows
+    that a larger value is refused on purpose, not misread. Booleans and floats with a
+    fraction are refused; ``5.0`` is read as ``5``.
+    """
+    v = value
+    if isinstance(v, float) and math.isfinite(v) and v.is_integer():
+        v = int(v)
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise SpecError(field, f"expected an integer, got {short_repr(value)}")
+    if v < lo:
+        raise SpecError(field, f"expected an integer >= {lo}, got {v}")
+    if v > limit:
+        why = f" ({what})" if what else ""
+        lim = f"{limit:,}" if isinstance(limit, int) else f"{limit:g}"
+        raise SpecError(field, f"{v:,} is over the limit of {lim}{why}")
+    return v

@@ -9,6 +9,7 @@ the field and exit with status 2, without a traceback.
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import sys
 import warnings
@@ -66,6 +67,50 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: the largest integer any option takes (what a seed, a count or an index can be stored as)
+MAX_INT = 2**63 - 1
+
+
+class _Checked:
+    """Mixed into every number type of every command (:func:`harden`): a float option
+    refuses ``nan`` / ``inf`` (a range check lets NaN through) and an integer option
+    refuses values beyond :data:`MAX_INT`, at parse time, as one usage error line."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if isinstance(v, float) and not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
+            self.fail(f"{value!r} is too large (at most {MAX_INT}).", param, ctx)
+        return v
+
+
+_CHECKED: dict[type, type] = {}
+
+
+def harden(cmd: click.Command) -> click.Command:
+    """Give every int / float option and argument of ``cmd`` (and its subcommands) the
+    checks of :class:`_Checked`, so no command can forget them. Returns ``cmd``."""
+    if getattr(cmd, "_epo_hardened", False):
+        return cmd
+    for p in cmd.params:
+        t = p.type
+        if isinstance(t, (click.types.IntParamType, click.types.FloatParamType)) and not (
+            isinstance(t, _Checked)
+        ):
+            cls = type(t)
+            if cls not in _CHECKED:
+                _CHECKED[cls] = type(f"Checked{cls.__name__}", (_Checked, cls), {})
+            new = object.__new__(_CHECKED[cls])
+            new.__dict__.update(t.__dict__)
+            p.type = new
+    if isinstance(cmd, click.Group):
+        for sub in cmd.commands.values():
+            harden(sub)
+    cmd._epo_hardened = True
+    return cmd
+
+
 class LazyGroup(click.Group):
     def list_commands(self, ctx):
         return sorted(COMMANDS)
@@ -76,7 +121,7 @@ class LazyGroup(click.Group):
         target, _ = COMMANDS[name]
         mod, attr = target.split(":")
         try:
-            return getattr(importlib.import_module(mod), attr)
+            return harden(getattr(importlib.import_module(mod), attr))
         except (ImportError, AttributeError) as e:  # pragma: no cover - a broken install
             msg = f"'{name}' is not available in this install: {e}"
 
@@ -109,6 +154,22 @@ def _command(argv: list[str] | None) -> str:
     return f"{args[0]} " if args and args[0] in COMMANDS else ""
 
 
+def _os_error(e: OSError) -> str:
+    """One line for an operating-system error: the path, then the system's reason."""
+    import errno
+
+    reason = e.strerror or str(e) or type(e).__name__
+    if e.errno == errno.ENOTDIR and e.filename:
+        from pathlib import Path
+
+        for parent in Path(e.filename).parents:
+            if parent.exists() and not parent.is_dir():
+                reason = f"{parent} is a file, not a folder"
+                break
+    where = f"{e.filename}: " if e.filename else ""
+    return f"{where}{reason}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: runs the CLI, turns toolkit errors into one-line messages."""
     shown = warnings.showwarning
@@ -119,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         click.echo("Aborted.", err=True)
         return 130
     except click.UsageError as e:  # a bad option or argument: one line, like every input error
-        click.echo(f"error: {e.format_message()} (see 'epo {_command(argv)}--help')", err=True)
+        path = e.ctx.command_path if e.ctx is not None else f"epo {_command(argv)}".strip()
+        click.echo(f"error: {e.format_message()} (see '{path} --help')", err=True)
         return 2
     except click.ClickException as e:
         e.show()
@@ -127,8 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     except EpoError as e:
         click.echo(f"error: {e}", err=True)
         return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
-        click.echo(f"error: {e.filename}: {e.strerror}", err=True)
+    except OSError as e:  # a file the command could not read or write: one line, like the rest
+        click.echo(f"error: {_os_error(e)}", err=True)
         return 2
     except KeyboardInterrupt:
         click.echo("Interrupted.", err=True)
