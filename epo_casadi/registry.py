@@ -19,8 +19,16 @@ Instances of such classes are accepted wherever a built-in one is (``AgentSpec``
     from epo_casadi import register_feature
     register_feature("lane_keeping", LaneKeeping)      # or register_feature(LaneKeeping)
 
-or write its import path, ``type: my_package.lanes:LaneKeeping``: the module is imported
-when the file is loaded; a failed import or an object of the wrong kind is one
+or write its import path, ``type: my_package.lanes:LaneKeeping``. A file (or any mapping
+given to :meth:`Registry.resolve`) may only import a module the user allowed: one named
+with ``--allow-import MODULE`` (``epo solve``, ``inspect``, ``export``, ``compare``), in
+the environment variable :data:`ALLOW_ENV` (``EPO_ALLOW_IMPORT=my_package,other``) or by
+:func:`allow_imports` in Python (``with allow_imports("my_package"): load_game(...)``);
+allowing a package allows its submodules. Any other ``module:Class`` is refused before
+anything is imported, so a game file from elsewhere runs no code. Registered names and
+built-ins need no allowance, and neither does ``register_feature("module:Class")`` (the
+caller's own code). A refused or failed import (whatever the module raises, ``SystemExit``
+included; not ``KeyboardInterrupt``) or an object of the wrong kind is one
 :class:`~epo_casadi.errors.SpecError` that names the field. A name of a built-in is
 refused unless ``replace=True``.
 
@@ -36,9 +44,12 @@ else of the package, so every arrow points one way: ``dynamics``/``features`` ->
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import os
 import re
-from collections.abc import Iterable, Mapping
+import threading
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import fields, is_dataclass
 from typing import Any
 
@@ -53,6 +64,10 @@ __all__ = [
     "register_pair_feature",
     "register_dynamics",
     "load_class",
+    "allow_imports",
+    "allowed_imports",
+    "import_allowed",
+    "ALLOW_ENV",
     "freeze",
     "NAME_RE",
 ]
@@ -60,6 +75,62 @@ __all__ = [
 #: a registered name, a feature ``kind``, a dynamics ``name``, a parameter block name
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _ENTRY_RE = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+_MODULE_RE = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
+
+#: environment variable: comma-separated modules a game file may import
+ALLOW_ENV = "EPO_ALLOW_IMPORT"
+
+_allow_lock = threading.Lock()
+_allowed: list[str] = []  # modules allowed by the open allow_imports() blocks (a multiset)
+
+
+def _module_names(items: Iterable[Any], where: str) -> list[str]:
+    """Module names from strings, each one name or several separated by commas."""
+    names = []
+    for item in items:
+        if not isinstance(item, str):
+            raise SpecError(where, f"expected module names, got {short_repr(item)}")
+        for m in item.split(","):
+            m = m.strip()
+            if not m:
+                continue
+            if not _MODULE_RE.match(m):
+                raise SpecError(
+                    where, f"expected a module name like 'my_package.lanes', got {short_repr(m)}"
+                )
+            names.append(m)
+    return names
+
+
+@contextlib.contextmanager
+def allow_imports(*modules: str, where: str = "allow_imports") -> Iterator[None]:
+    """Within the block, ``module:Class`` names of these modules (and their submodules)
+    may be imported by :meth:`Registry.resolve` (game files, mappings). Each argument is
+    one module name or several separated by commas. Process-wide (every thread), nested
+    blocks add up."""
+    names = _module_names(modules, where)
+    with _allow_lock:
+        _allowed.extend(names)
+    try:
+        yield
+    finally:
+        with _allow_lock:
+            for m in names:
+                _allowed.remove(m)
+
+
+def allowed_imports() -> tuple[str, ...]:
+    """The modules allowed now: those of open :func:`allow_imports` blocks and of
+    ``$EPO_ALLOW_IMPORT``."""
+    env = _module_names([os.environ.get(ALLOW_ENV, "")], ALLOW_ENV)
+    with _allow_lock:
+        scoped = list(_allowed)
+    return tuple(dict.fromkeys(scoped + env))
+
+
+def import_allowed(module: str) -> bool:
+    """Whether ``module`` is allowed (it or a package above it is in :func:`allowed_imports`)."""
+    return any(module == a or module.startswith(a + ".") for a in allowed_imports())
 
 
 def _one_line(e: BaseException) -> str:
@@ -75,26 +146,42 @@ def freeze(v: Any) -> Any:
     return v
 
 
-def load_class(entry: str, where: str = "type") -> type:
+def load_class(entry: str, where: str = "type", *, check_allowed: bool = False) -> type:
     """The object named by ``"package.module:Class"`` (imported now).
 
-    Raises :class:`SpecError` at ``where`` with the import error in one line when the
-    module cannot be imported or has no such attribute.
+    With ``check_allowed`` a module that :func:`import_allowed` refuses is a
+    :class:`SpecError` before anything is imported. Raises :class:`SpecError` at
+    ``where`` with the error in one line when the module cannot be imported (whatever it
+    raises, ``SystemExit`` included; ``KeyboardInterrupt`` passes) or has no such
+    attribute.
     """
     if not isinstance(entry, str) or not _ENTRY_RE.match(entry):
         raise SpecError(where, f"expected 'package.module:Class', got {short_repr(entry)}")
     module, _, qual = entry.partition(":")
+    if check_allowed and not import_allowed(module):
+        raise SpecError(
+            where,
+            f"{entry!r} would import the module {module!r}, which is not allowed (a file runs "
+            f"no code unless you allow it): pass --allow-import {module} or set "
+            f"{ALLOW_ENV}={module} (Python: epo_casadi.registry.allow_imports({module!r}))",
+        )
     try:
         obj: Any = importlib.import_module(module)
-    except Exception as e:  # any failure while importing user code is a spec error
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # noqa: BLE001 - whatever user code raises is a spec error
         raise SpecError(where, f"cannot import {module!r} for {entry!r} ({_one_line(e)})") from None
     for part in qual.split("."):
         try:
             obj = getattr(obj, part)
+        except KeyboardInterrupt:
+            raise
         except AttributeError:
             raise SpecError(
                 where, f"module {module!r} has no attribute {qual!r} (for {entry!r})"
             ) from None
+        except BaseException as e:  # noqa: BLE001 - a module __getattr__ of user code
+            raise SpecError(where, f"cannot read {qual!r} of {module!r} ({_one_line(e)})") from None
     return obj
 
 
@@ -202,9 +289,10 @@ class Registry:
 
     # ---- resolution ---------------------------------------------------------------------
     def resolve(self, type_: Any, where: str) -> type:
-        """The class a ``type`` entry names: a registered name or ``"module:Class"``."""
+        """The class a ``type`` entry names: a registered name or ``"module:Class"`` of a
+        module the user allowed (see :func:`allow_imports`)."""
         if isinstance(type_, str) and ":" in type_:
-            return self.check_class(load_class(type_, where), where)
+            return self.check_class(load_class(type_, where, check_allowed=True), where)
         if not isinstance(type_, str) or type_ not in self.table:
             raise SpecError(
                 where,

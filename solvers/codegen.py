@@ -15,6 +15,17 @@ Cache
     Files are written under a temporary name and renamed, so two processes compiling the
     same functions at once do not read a half-written library.
 
+    Every library (and kernel object file) is used only after a check: when it is built,
+    the SHA-256 digest of its file name and bytes is written beside it
+    (``NAME.so.sha256``), and before a library is loaded or linked its bytes must match
+    that digest (hashed once per process and file). A library without a digest or with
+    another one (a truncated file, a file put there by something else, a copy of another
+    cached library) is never loaded: it is compiled again and replaced. Builds of one
+    library hold a lock (``.NAME.so.lock``), so a checked library is never replaced by a
+    concurrent build. The cache folder must belong to the current user and not be
+    writable by group or others (:class:`CacheError` otherwise; ``chmod go-w FOLDER``);
+    a folder created here is private (mode 700).
+
 :func:`compile_libraries` does the same for several libraries at once, running their
 compilers in parallel (one process per library, at most one per usable core): the fused
 Gauss-Newton backend compiles its linearization, solve and energy that way.
@@ -40,10 +51,17 @@ import contextlib
 import hashlib
 import os
 import shutil
+import stat
 import subprocess
 import tempfile
+import threading
 from collections.abc import Sequence
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on POSIX
+    fcntl = None
 
 import casadi as ca
 import numpy as np
@@ -54,6 +72,7 @@ __all__ = [
     "AUTO_O1_LIMIT",
     "KERNEL_FLAGS",
     "BufferCall",
+    "CacheError",
     "CompilerError",
     "cache_dir",
     "compile_functions",
@@ -71,16 +90,140 @@ class CompilerError(EpoError, RuntimeError):
     """No C compiler was found, or compiling the generated code failed."""
 
 
+class CacheError(EpoError):
+    """The cache folder cannot be trusted: not the current user's, or writable by others
+    (whoever can write there could put code into every process that loads from it)."""
+
+    def __init__(self, folder, reason: str):
+        self.folder = str(folder)
+        self.reason = reason
+        super().__init__(
+            f"{folder}: refusing the compiled-code cache folder: {reason}; run "
+            f"'chmod go-w {folder}' or set EPO_CACHE_DIR to a folder of your own"
+        )
+
+
 def cache_dir(directory: str | os.PathLike | None = None) -> Path:
-    """The cache folder: ``directory``, else ``$EPO_CACHE_DIR``, else ``~/.cache/epo``."""
+    """The cache folder: ``directory``, else ``$EPO_CACHE_DIR``, else ``~/.cache/epo``.
+
+    Created (mode 700) when missing. Raises :class:`CacheError` when the folder belongs
+    to another user or is writable by group or others.
+    """
     if directory is not None:
         d = Path(directory)
     elif os.environ.get("EPO_CACHE_DIR"):
         d = Path(os.environ["EPO_CACHE_DIR"])
     else:
         d = Path.home() / ".cache" / "epo"
-    d.mkdir(parents=True, exist_ok=True)
+    if not d.is_dir():
+        d.parent.mkdir(parents=True, exist_ok=True)
+        d.mkdir(mode=0o700, exist_ok=True)  # FileExistsError if it is a file
+    _check_folder(d)
     return d
+
+
+def _check_folder(d: Path) -> None:
+    st = d.stat()
+    if hasattr(os, "geteuid") and st.st_uid != os.geteuid():
+        raise CacheError(d, f"it belongs to user id {st.st_uid}, not to you ({os.geteuid()})")
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise CacheError(
+            d, f"it is writable by group or others (mode {stat.S_IMODE(st.st_mode):o})"
+        )
+
+
+# ---- digests of cached files ----------------------------------------------------------
+_DIGEST_SUFFIX = ".sha256"
+_verified: dict[str, tuple] = {}  # path -> (dev, inode, size, mtime) when its digest matched
+_verified_lock = threading.Lock()
+
+
+def _sha256(path: Path, name: str) -> str:
+    """Digest of the file's name (its cache key) and bytes: a copy of another cached
+    library, digest file included, does not match under this name."""
+    h = hashlib.sha256(name.encode() + b"\0")
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _digest_path(path: Path) -> Path:
+    return path.with_name(path.name + _DIGEST_SUFFIX)
+
+
+def _stat_key(path: Path) -> tuple | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _is_intact(path: Path) -> bool:
+    """Whether ``path`` exists and its bytes match the digest recorded beside it."""
+    key = _stat_key(path)
+    if key is None:
+        return False
+    with _verified_lock:
+        if _verified.get(str(path)) == key:
+            return True
+    try:
+        with open(_digest_path(path), "rb") as fh:
+            recorded = fh.read(256).split()
+        if not recorded or _sha256(path, path.name) != recorded[0].decode("ascii", "replace"):
+            return False
+    except OSError:
+        return False
+    if _stat_key(path) != key:  # changed while it was hashed
+        return False
+    with _verified_lock:
+        _verified[str(path)] = key
+    return True
+
+
+def _install(built: str | os.PathLike, target: Path) -> None:
+    """Move the freshly built file ``built`` to ``target`` and record its digest (both
+    renamed into place, so readers see whole files; a reader between the two renames
+    finds a mismatch and builds again)."""
+    digest = _sha256(Path(built), target.name)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}_")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{digest}  {target.name}\n")
+        os.replace(built, target)  # atomic: readers see the old or the whole library
+        os.replace(tmp, _digest_path(target))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    key = _stat_key(target)
+    if key is not None:
+        with _verified_lock:
+            _verified[str(target)] = key
+
+
+@contextlib.contextmanager
+def _building(paths: Sequence[Path]):
+    """Exclusive locks (``flock`` on ``.NAME.lock`` beside each file, taken in sorted
+    order) while files are checked and built: of two processes missing the same library,
+    the second waits and then finds it built, so a checked library is never replaced."""
+    with contextlib.ExitStack() as stack:
+        if fcntl is not None:
+            for p in sorted({str(p) for p in paths}):
+                lock = Path(p).with_name(f".{Path(p).name}.lock")
+                fh = stack.enter_context(open(lock, "a"))  # noqa: SIM115
+                fcntl.flock(fh, fcntl.LOCK_EX)
+        yield
+
+
+def _load(names: Sequence[str], lib: Path) -> dict[str, ca.Function]:
+    """The functions of a verified library (a :class:`CompilerError` if it is not)."""
+    if not _is_intact(lib):  # pragma: no cover - replaced between the build and the load
+        raise CompilerError(f"{lib} changed after it was built and checked; run again")
+    return {n: ca.external(n, str(lib)) for n in names}
 
 
 def find_compiler() -> str:
@@ -151,9 +294,10 @@ def compile_libraries(
         _plan(list(lb[0]), lb[1], directory, optimize, tuple(lb[2]) if len(lb) > 2 else ())
         for lb in libraries
     ]
-    todo = [pl for pl in plans if not pl[-1].exists()]
+    todo = [pl for pl in plans if not _is_intact(pl[-1])]  # missing, or not what was built
     if todo:
-        with contextlib.ExitStack() as stack:
+        with _building([pl[-1] for pl in todo]), contextlib.ExitStack() as stack:
+            todo = [pl for pl in todo if not _is_intact(pl[-1])]  # built by another process
             jobs = [_generate(*pl, stack) for pl in todo]
             procs: list[subprocess.Popen] = []
             try:
@@ -170,13 +314,13 @@ def compile_libraries(
                             f"compiling {Path(cmd[-2]).name} failed ({' '.join(cmd)}):\n"
                             f"{err[-2000:]}"
                         )
-                    os.replace(out, lib)  # atomic: readers see the old or the whole library
+                    _install(out, lib)
             finally:
                 for p in procs:
                     if p.poll() is None:
                         p.kill()
                         p.wait()
-    return [{n: ca.external(n, str(pl[-1])) for n in pl[1]} for pl in plans]
+    return [_load(pl[1], pl[-1]) for pl in plans]
 
 
 #: Flags of :func:`compile_kernel`: loops of hand-written C vectorize from ``-O3`` on (the
@@ -194,7 +338,9 @@ def compile_kernel(
     libraries of the functions that call it (``objects`` of :func:`compile_functions`),
     whose generated C declares and calls the same symbol. Both are compiled with
     :data:`KERNEL_FLAGS` whatever the ``optimize`` of the generated code, and cached as
-    ``<name>_<hash>.so`` / ``.o`` (hash of the compiler, flags and source).
+    ``<name>_<hash>.so`` / ``.o`` (hash of the compiler, flags and source), each with its
+    digest (see the module docstring); a pair that does not match its digests is
+    compiled again.
     """
     if not name.isidentifier():
         raise SpecError("name", f"expected a C identifier, got {name!r}")
@@ -206,9 +352,11 @@ def compile_kernel(
     folder = cache_dir(directory)
     stem = folder / f"{name}_{h.hexdigest()[:20]}"
     so, obj = stem.with_suffix(".so"), stem.with_suffix(".o")
-    if so.exists() and obj.exists():
+    if _is_intact(so) and _is_intact(obj):
         return so, obj
-    with tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}_") as tmp:
+    with _building([so]), tempfile.TemporaryDirectory(dir=folder, prefix=f".{name}_") as tmp:
+        if _is_intact(so) and _is_intact(obj):  # built by another process meanwhile
+            return so, obj
         src = os.path.join(tmp, f"{name}.c")
         Path(src).write_text(source)
         t_obj, t_so = os.path.join(tmp, f"{name}.o"), os.path.join(tmp, f"{name}.so")
@@ -221,8 +369,8 @@ def compile_kernel(
                 raise CompilerError(
                     f"compiling {name}.c failed ({' '.join(cmd)}):\n{done.stderr[-2000:]}"
                 )
-        os.replace(t_obj, obj)  # atomic, the object first: the .so marks a complete pair
-        os.replace(t_so, so)
+        _install(t_obj, obj)
+        _install(t_so, so)
     return so, obj
 
 

@@ -263,7 +263,10 @@ pair_features:
 """
     path = tmp_path / "lanes.yaml"
     path.write_text(text, encoding="utf-8")
-    gf = load_game(path)
+    with pytest.raises(SpecError, match="not allowed") as e:  # imports nothing unasked
+        load_game(path)
+    assert e.value.field == "agents[0].dynamics.type"
+    gf = load_game(path, allow_imports=[MODULE])
     assert gf.spec == _spec(ext)  # the same game as the Python API's
     res = solve_lm(gf.game, gf.params)
     ref = solve_lm(game, game.default_params())
@@ -283,8 +286,8 @@ pair_features:
         "weight": 2.0,
         "lane_y": 1.0,
     }
-    assert parse_game(yaml.safe_load(yaml.safe_dump(d))).spec == gf.spec
-    assert load_game(save_game(gf, tmp_path / "again.json")).spec == gf.spec
+    assert parse_game(yaml.safe_load(yaml.safe_dump(d)), allow_imports=MODULE).spec == gf.spec
+    assert load_game(save_game(gf, tmp_path / "again.json"), [MODULE]).spec == gf.spec
 
 
 def test_registered_names_in_game_files(ext, tmp_path):
@@ -301,7 +304,7 @@ def test_registered_names_in_game_files(ext, tmp_path):
     assert "lane_keeping" not in FEATURES
 
 
-def test_game_file_errors_name_the_field(ext, tmp_path):
+def test_game_file_errors_name_the_field(ext, tmp_path, monkeypatch):
     base = {
         "horizon": 5,
         "dt": 0.1,
@@ -314,6 +317,7 @@ def test_game_file_errors_name_the_field(ext, tmp_path):
             }
         ],
     }
+    monkeypatch.setenv("EPO_ALLOW_IMPORT", f"{MODULE},no_such_pkg")  # no_such_pkg.lanes too
     bad = {**base}
     bad["agents"] = [{**base["agents"][0], "features": [{"type": "no_such_pkg.lanes:Lane"}]}]
     with pytest.raises(SpecError) as e:

@@ -30,7 +30,7 @@ from epo_casadi import (
     register_feature,
     register_pair_feature,
 )
-from epo_casadi.registry import DYNAMICS, FEATURES, PAIR_FEATURES, load_class
+from epo_casadi.registry import DYNAMICS, FEATURES, PAIR_FEATURES, allow_imports, load_class
 from scenarios.gamefile import dump_game, parse_game
 from solvers import solve_ipopt, solve_lm
 
@@ -181,7 +181,11 @@ def test_registered_and_module_class_names_resolve(clean):
     here = f"{__name__}:Offset"
     assert load_class(here) is Offset
     spec = {"type": here, "weight": 2.0, "target": [1.0, 2.0]}
-    f = make_feature(spec)
+    with pytest.raises(SpecError, match="not allowed") as e:  # a mapping imports nothing
+        make_feature(spec)
+    assert e.value.field == "feature.type" and f"--allow-import {__name__}" in e.value.message
+    with allow_imports(__name__):
+        f = make_feature(spec)
     assert f == Offset(weight=2.0, target=(1.0, 2.0))  # lists frozen to tuples
     assert f.to_dict() == {"type": here, "weight": 2.0, "target": [1.0, 2.0]}
     register_feature(Offset)
@@ -198,7 +202,8 @@ def test_registered_and_module_class_names_resolve(clean):
         make_feature({"type": "nope"})
     assert e.value.field == "feature.type" and "package.module:Class" in e.value.message
     with pytest.raises(SpecError, match="ModuleNotFoundError") as e:
-        make_dynamics({"type": "surely_missing_module:Thing"})
+        with allow_imports("surely_missing_module"):
+            make_dynamics({"type": "surely_missing_module:Thing"})
     assert e.value.field == "dynamics.type"
 
 
@@ -207,7 +212,7 @@ def test_game_file_round_trip_of_user_classes(clean):
     d = dump_game(g.spec)
     assert d["agents"][0]["dynamics"] == {"type": f"{__name__}:Point", "gain": 2.0}
     assert d["pair_features"] == [{"type": f"{__name__}:Near", "weight": 0.5}]
-    assert parse_game(d).spec == g.spec
+    assert parse_game(d, allow_imports=[__name__]).spec == g.spec
 
 
 def test_feature_parameter_blocks_are_checked():
