@@ -27,9 +27,33 @@ Release layout (exiD v2, the levelXdata family shared with inD / rounD / uniD)
     ``latLocation, lonLocation, duration, numTracks, ...``.
 
     Every problem is a :class:`~scenarios.dataset.DatasetError` whose ``where`` is
-    ``<file>:<column>`` (a missing file or column, a non-numeric value with its line, an
-    empty value (a truncated file), a track whose row count differs from its
-    ``numFrames``, a frame rate that does not divide the sampling step).
+    ``<file>:<column>`` (a missing file or column, a cell with its line, a track whose row
+    count differs from its ``numFrames``, a frame rate that does not divide the sampling
+    step). Every table goes through one check, :func:`read_table` with the
+    :class:`Column` s of :data:`TRACKS_TABLE`, :data:`TRACKS_META_TABLE`,
+    :data:`RECORDING_META_TABLE`: each cell read must be a finite number (not ``nan``,
+    ``inf``, text or empty) within its bounds, a whole number where an integer is meant.
+    The columns not listed are not read. Then: recordingMeta has one row, the
+    ``recordingId`` of every row is the file name's ``NN``, a track has one tracksMeta
+    row and one tracks row per frame, its frames run from ``initialFrame`` to
+    ``finalFrame`` without gaps, and ``laneletId`` holds ids (``id`` or ``id1;id2``, empty
+    or ``-1``: none).
+
+Bounds (inclusive; each a module constant)
+    ``recordingId``, ``locationId``: integers 0 .. 32767 (:data:`MAX_ID`, stored as int16;
+    also the ``NN`` of the file names); ``trackId``: 0 .. 2^31 - 1; frames (``frame``,
+    ``initialFrame``, ``finalFrame``): 0 .. 10^7 (:data:`MAX_FRAME`), ``numFrames`` >= 1;
+    ``xCenter``, ``yCenter``: within 10^6 m of the local origin (:data:`MAX_POSITION`);
+    ``xUtmOrigin``, ``yUtmOrigin``: within 10^7 m (:data:`MAX_UTM`, the extent of UTM
+    coordinates); ``heading``: -360 .. 360 deg; ``width``: (0, 10] m, ``length``: (0, 50]
+    m (tracks and tracksMeta); every velocity component within 100 m/s
+    (:data:`MAX_SPEED`), every acceleration component within 100 m/s^2
+    (:data:`MAX_ACCELERATION`); ``frameRate``: 1 .. 1000 Hz; ``speedLimit``: -1 .. 100 m/s
+    (<= 0: none); ``latLocation``: -90 .. 90, ``lonLocation``: -180 .. 180 deg. A
+    recording of which the resampled arrays would exceed :data:`MAX_GRID_CELLS` tracks x
+    samples is refused before they are built, and one of which no sample can be made
+    (fewer than ``agents`` tracks span a scene's ``history + 1 + horizon`` samples: all
+    tracks too short, a ``frameRate`` too high) is refused naming the recording.
 
 Maps: a light OSM parse, not the ``lanelet2`` package
     ``lanelet2`` has wheels on PyPI (1.2.3, Linux x86-64 manylinux_2_31 only; none for
@@ -52,6 +76,15 @@ Maps: a light OSM parse, not the ``lanelet2`` package
     Lanelets of subtype ``walkway``, ``crosswalk``, ``bicycle_lane``, ``stairs`` are left
     out. The result is a :class:`LaneletMap`: a :class:`scenarios.maps.RoadMap` (lane ids
     are the lanelet ids as strings) plus the neighbour relations.
+    Checks: node ``lat`` within 90 deg, ``lon`` within 180 deg, ``local_x`` / ``local_y``
+    within 10^7 m (all finite) and a finite UTM position; ids and references integers;
+    a speed limit in (0, 500] km/h; a lanelet's bounds at most :data:`MAX_LANE_WIDTH`
+    (30 m) apart on average. A map is used for a recording only if every track's first,
+    middle and last position lies within :data:`MAP_DISTANCE` (200 m) of one of its
+    lanelets (:func:`check_map_near`; the map of another location, lat/lon swapped or a
+    wrong UTM origin put the lanes km away), and each lane of a sample (the agent's
+    current lanelet and its neighbours, continued) passes within 200 m of its agent;
+    otherwise the error names the map file and the distance.
 
 Extraction (App. E, one work unit per recording)
     1. Resampling: every ``step = dt * frameRate`` frames (``dt = 0.2`` s, 5 frames at
@@ -113,6 +146,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import numbers
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -136,7 +170,7 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from epo_casadi.errors import SpecError, check_bool, check_number
+from epo_casadi.errors import SpecError, check_bool, check_number, check_size, short_repr
 
 from .dataset import SPLITS, DatasetError, FieldSpec, Scenario
 from .maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
@@ -153,6 +187,13 @@ __all__ = [
     "find_recordings",
     "read_recording",
     "read_lanelet_map",
+    "read_table",
+    "Column",
+    "TRACKS_TABLE",
+    "TRACKS_META_TABLE",
+    "RECORDING_META_TABLE",
+    "check_map_near",
+    "map_distance",
     "find_map",
     "utm_from_latlon",
     "latlon_from_utm",
@@ -242,49 +283,169 @@ def latlon_from_utm(easting, northing, zone: int) -> tuple[np.ndarray, np.ndarra
 
 
 # --------------------------------------------------------------------------------------
-# CSV reading
+# CSV reading: one validating step for every table of the release
 # --------------------------------------------------------------------------------------
-def _read_csv(path: FilePath, columns: Sequence[str], optional: Sequence[str] = ()):
-    """The CSV at ``path`` with ``columns`` numeric (checked), ``optional`` kept as text."""
+#: Bounds of the cells the reader uses (inclusive; module docstring, "Bounds").
+MAX_ID = 32767  #: recordingId, locationId (stored as int16)
+MAX_TRACK_ID = 2**31 - 1  #: trackId (stored as int32)
+MAX_FRAME = 10_000_000  #: frame numbers (4.6 days at 25 Hz)
+MAX_POSITION = 1e6  #: m, |xCenter|, |yCenter| in the recording's local frame
+MAX_UTM = 1e7  #: m, |xUtmOrigin|, |yUtmOrigin| (UTM eastings < 1e6, northings < 1e7)
+MAX_SPEED = 100.0  #: m/s, every velocity component (360 km/h)
+MAX_ACCELERATION = 100.0  #: m/s^2, every acceleration component (about 10 g)
+MAX_LENGTH = 50.0  #: m, vehicle length (> 0)
+MAX_WIDTH = 10.0  #: m, vehicle width (> 0)
+FRAME_RATE = (1.0, 1000.0)  #: Hz
+MAX_SPEED_LIMIT = 100.0  #: m/s, recordingMeta ``speedLimit`` (<= 0: none)
+#: m: every track must come this close to a lane of its map (module docstring, "Maps")
+MAP_DISTANCE = 200.0
+#: m: the largest mean distance between a lanelet's left and right bounds
+MAX_LANE_WIDTH = 30.0
+#: tracks x samples of one recording on the ``dt`` grid (the resampled arrays' size)
+MAX_GRID_CELLS = 50_000_000
+
+
+@dataclass(frozen=True)
+class Column:
+    """A column of an external table and what each of its cells must be: a finite number
+    in ``[lo, hi]`` (``lo`` exclusive with ``lo_open``), a whole number with ``integer``,
+    or any text with ``text``. ``required=False``: the column may be absent (its cells are
+    checked where it is present)."""
+
+    name: str
+    lo: float | None = None
+    hi: float | None = None
+    integer: bool = False
+    lo_open: bool = False
+    required: bool = True
+    text: bool = False
+
+
+def _num(name: str, bound: float, **kw) -> Column:
+    return Column(name, -bound, bound, **kw)
+
+
+def _size(name: str, hi: float) -> Column:
+    return Column(name, 0.0, hi, lo_open=True)
+
+
+#: ``NN_tracks.csv``
+TRACKS_TABLE = (
+    Column("recordingId", 0, MAX_ID, integer=True),
+    Column("trackId", 0, MAX_TRACK_ID, integer=True),
+    Column("frame", 0, MAX_FRAME, integer=True),
+    _num("xCenter", MAX_POSITION),
+    _num("yCenter", MAX_POSITION),
+    Column("heading", -360.0, 360.0),
+    _size("width", MAX_WIDTH),
+    _size("length", MAX_LENGTH),
+    *(_num(c, MAX_SPEED) for c in ("xVelocity", "yVelocity", "lonVelocity", "latVelocity")),
+    *(
+        _num(c, MAX_ACCELERATION)
+        for c in ("xAcceleration", "yAcceleration", "lonAcceleration", "latAcceleration")
+    ),
+    Column("laneletId", required=False, text=True),
+)
+#: ``NN_tracksMeta.csv``
+TRACKS_META_TABLE = (
+    Column("recordingId", 0, MAX_ID, integer=True),
+    Column("trackId", 0, MAX_TRACK_ID, integer=True),
+    Column("initialFrame", 0, MAX_FRAME, integer=True),
+    Column("finalFrame", 0, MAX_FRAME, integer=True),
+    Column("numFrames", 1, MAX_FRAME + 1, integer=True),
+    _size("width", MAX_WIDTH),
+    _size("length", MAX_LENGTH),
+    Column("class", text=True),
+)
+#: ``NN_recordingMeta.csv``
+RECORDING_META_TABLE = (
+    Column("recordingId", 0, MAX_ID, integer=True),
+    Column("locationId", 0, MAX_ID, integer=True),
+    Column("frameRate", *FRAME_RATE),
+    _num("xUtmOrigin", MAX_UTM),
+    _num("yUtmOrigin", MAX_UTM),
+    Column("speedLimit", -1.0, MAX_SPEED_LIMIT, required=False),
+    Column("latLocation", -90.0, 90.0, required=False),
+    Column("lonLocation", -180.0, 180.0, required=False),
+)
+
+
+def read_table(path: str | FilePath, columns: Sequence[Column]) -> tuple[dict, np.ndarray]:
+    """The cells of ``columns`` in the CSV at ``path``, each checked against its
+    :class:`Column`: numeric columns as float arrays, text columns as stripped strings.
+    Also returns each row's line number in the file (blank lines are skipped).
+
+    The one check of every table the exiD reader reads: a missing file or column, a cell
+    that is not a number (``nan``, text, empty), not finite, outside its bounds or not a
+    whole number where one is expected is a :class:`~scenarios.dataset.DatasetError` at
+    ``<file>:<column>`` naming the line and the value found.
+    """
     import pandas as pd
 
+    path = FilePath(path)
     if not path.is_file():
         raise DatasetError(str(path), "missing file")
     try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
         raise DatasetError(str(path), f"not a readable CSV ({str(e).strip()})") from None
     for c in columns:
-        if c not in df.columns:
+        if c.required and c.name not in df.columns:
             raise DatasetError(
-                f"{path}:{c}", f"missing column; the file has {', '.join(df.columns)}"
+                f"{path}:{c.name}", f"missing column; the file has {', '.join(df.columns)}"
             )
+    lines = np.arange(len(df)) + 2  # line 1 is the header
+    blank = (df == "").all(axis=1).to_numpy() if len(df.columns) else np.ones(len(df), bool)
+    df, lines = df[~blank], lines[~blank]
     if len(df) == 0:
         raise DatasetError(str(path), "no rows")
     out = {}
     for c in columns:
-        if c == "class":
-            out[c] = df[c].str.strip().str.lower().to_numpy()
+        if c.name not in df.columns:
             continue
-        s = df[c].str.strip()
-        v = pd.to_numeric(s, errors="coerce")
-        bad = v.isna().to_numpy()
+        s = df[c.name].str.strip()
+        if c.text:
+            out[c.name] = s.to_numpy(dtype=str)
+            continue
+        v = pd.to_numeric(s, errors="coerce").to_numpy(dtype=float)
+        bad = ~np.isfinite(v)
+        if c.lo is not None:
+            bad |= v <= c.lo if c.lo_open else v < c.lo
+        if c.hi is not None:
+            bad |= v > c.hi
+        if c.integer:
+            bad |= v != np.floor(v)
         if bad.any():
             i = int(np.argmax(bad))
-            what = "an empty value (truncated file?)" if s.iloc[i] == "" else repr(s.iloc[i])
-            raise DatasetError(f"{path}:{c}", f"expected a number, got {what} in line {i + 2}")
-        out[c] = v.to_numpy(dtype=float)
-    for c in optional:
-        if c in df.columns:
-            out[c] = df[c].to_numpy()
-    return out, len(df)
+            where, text = f"{path}:{c.name}", s.iloc[i]
+            if np.isnan(v[i]):  # not a number at all
+                what = "an empty value (truncated file?)" if text == "" else repr(text)
+                raise DatasetError(where, f"expected a number, got {what} in line {lines[i]}")
+            x = float(v[i])
+            x = int(x) if c.integer and math.isfinite(x) and x.is_integer() else x
+            try:
+                check_number(where, x, lo=c.lo, hi=c.hi, lo_open=c.lo_open, integer=c.integer)
+            except SpecError as e:
+                raise DatasetError(where, f"{e.message} in line {lines[i]}") from None
+            raise AssertionError(f"{where}: {text!r} passed check_number")  # pragma: no cover
+        out[c.name] = v
+    return out, lines
 
 
-def _ids(column: np.ndarray) -> np.ndarray:
-    """First id of each ``"a;b"`` entry; ``-1`` where empty or not a number."""
-    first = np.array([str(x).split(";")[0].strip() for x in column])
+def _ids(column: np.ndarray, where: str, lines: np.ndarray) -> np.ndarray:
+    """First id of each ``"a;b"`` entry; ``-1`` where empty or ``-1``. Anything else (text,
+    an id of more than 18 digits) is refused naming its line."""
+    first = np.array([str(x).split(";")[0].strip() for x in column], dtype=str)
     out = np.full(len(first), -1, dtype=np.int64)
-    ok = np.char.isdigit(first)
+    ok = np.char.isdigit(first) & (np.char.str_len(first) <= 18)
+    bad = ~ok & ~np.isin(first, ["", "-1"])
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DatasetError(
+            where,
+            f"expected a lanelet id ('id' or 'id1;id2'; empty or -1: none), got "
+            f"{short_repr(str(column[i]))} in line {lines[i]}",
+        )
     out[ok] = first[ok].astype(np.int64)
     return out
 
@@ -316,7 +477,8 @@ class Recording:
 
 def find_recordings(raw: str | FilePath) -> dict[int, FilePath]:
     """Recording id -> directory of its CSVs, for every ``NN_recordingMeta.csv`` found in
-    ``raw`` or ``raw/data``."""
+    ``raw`` or ``raw/data`` (``NN`` from 00 to :data:`MAX_ID`, as ``recordingId`` is stored
+    as int16)."""
     raw = FilePath(raw)
     if not raw.is_dir():
         raise DatasetError(str(raw), "no such directory (the exiD release: data/ and maps/)")
@@ -325,40 +487,62 @@ def find_recordings(raw: str | FilePath) -> dict[int, FilePath]:
         if d.is_dir():
             for f in sorted(d.glob("*_recordingMeta.csv")):
                 m = re.fullmatch(r"(\d+)_recordingMeta\.csv", f.name)
-                if m:
-                    out.setdefault(int(m.group(1)), d)
+                if not m:
+                    continue
+                rid = int(m.group(1))
+                if rid > MAX_ID or f"{rid:02d}" != m.group(1):
+                    raise DatasetError(
+                        str(f),
+                        f"expected a recording number from 00 to {MAX_ID} (two or more "
+                        f"digits, no extra leading zero) before _recordingMeta.csv, got "
+                        f"{short_repr(m.group(1), 30)}",
+                    )
+                out.setdefault(rid, d)
     if not out:
         raise DatasetError(str(raw), "holds no NN_recordingMeta.csv (nor does its data/)")
     return dict(sorted(out.items()))
 
 
-def _recording_meta(path: FilePath) -> dict:
-    m, _ = _read_csv(path, RECORDING_META_COLUMNS, ("speedLimit", "latLocation", "lonLocation"))
+def _recording_meta(path: FilePath, rid: int) -> dict:
+    """The one row of ``NN_recordingMeta.csv`` (recording ``rid``), checked."""
+    m, lines = read_table(path, RECORDING_META_TABLE)
+    if len(lines) != 1:
+        raise DatasetError(
+            str(path),
+            f"expected one row (one recording), found {len(lines)} (lines "
+            f"{', '.join(str(x) for x in lines[:3])}{', ...' if len(lines) > 3 else ''})",
+        )
     rec = {k: float(m[k][0]) for k in RECORDING_META_COLUMNS}
-    if not rec["frameRate"] > 0:
-        raise DatasetError(f"{path}:frameRate", f"expected a number > 0, got {rec['frameRate']}")
-    sl = None
-    if "speedLimit" in m:
-        try:
-            sl = float(m["speedLimit"][0])
-        except ValueError:
-            raise DatasetError(
-                f"{path}:speedLimit", f"expected a number, got {m['speedLimit'][0]!r}"
-            ) from None
-        sl = sl if sl > 0 else None
+    rec["recordingId"], rec["locationId"] = int(rec["recordingId"]), int(rec["locationId"])
+    if rec["recordingId"] != rid:
+        raise DatasetError(
+            f"{path}:recordingId",
+            f"expected {rid} (the recording of the file name), got {rec['recordingId']} "
+            f"in line {lines[0]}",
+        )
+    sl = float(m["speedLimit"][0]) if "speedLimit" in m else -1.0
+    rec["speedLimit"] = sl if sl > 0 else None
     lonlat = None
     if "latLocation" in m and "lonLocation" in m:
-        try:
-            lonlat = (float(m["lonLocation"][0]), float(m["latLocation"][0]))
-        except ValueError:
-            lonlat = None
-    rec["speedLimit"], rec["lonlat"] = sl, lonlat
+        lonlat = (float(m["lonLocation"][0]), float(m["latLocation"][0]))
+    rec["lonlat"] = lonlat
     return rec
 
 
+def _same_recording(path: FilePath, col: np.ndarray, lines: np.ndarray, rid: int) -> None:
+    bad = np.flatnonzero(col != rid)
+    if bad.size:
+        i = int(bad[0])
+        raise DatasetError(
+            f"{path}:recordingId",
+            f"expected {rid} (the recording of the file name), got {int(col[i])} "
+            f"in line {lines[i]}",
+        )
+
+
 def read_recording(raw: str | FilePath, rid: int) -> Recording:
-    """Recording ``rid`` of the release in ``raw`` (module docstring; errors name file and
-    column)."""
+    """Recording ``rid`` of the release in ``raw`` (module docstring; errors name the file,
+    the column and, for a cell, its line)."""
     dirs = find_recordings(raw)
     if rid not in dirs:
         raise DatasetError(str(raw), f"no recording {rid:02d}; found {sorted(dirs)}")
@@ -366,24 +550,59 @@ def read_recording(raw: str | FilePath, rid: int) -> Recording:
     f_rec, f_meta, f_trk = (
         d / f"{rid:02d}_{n}.csv" for n in ("recordingMeta", "tracksMeta", "tracks")
     )
-    rec = _recording_meta(f_rec)
-    meta, _ = _read_csv(f_meta, TRACKS_META_COLUMNS)
-    rows, n = _read_csv(f_trk, TRACK_COLUMNS, ("laneletId",))
-    lanelet = _ids(rows.pop("laneletId")) if "laneletId" in rows else np.full(n, -1, np.int64)
+    rec = _recording_meta(f_rec, rid)
+    meta, mlines = read_table(f_meta, TRACKS_META_TABLE)
+    rows, lines = read_table(f_trk, TRACKS_TABLE)
+    _same_recording(f_meta, meta["recordingId"], mlines, rid)
+    _same_recording(f_trk, rows["recordingId"], lines, rid)
+    meta["class"] = np.char.lower(meta["class"])
+    n = len(lines)
+    lanelet = (
+        _ids(rows.pop("laneletId"), f"{f_trk}:laneletId", lines)
+        if "laneletId" in rows
+        else np.full(n, -1, np.int64)
+    )
+    # tracksMeta: one row per track
+    mo = np.argsort(meta["trackId"], kind="stable")
+    meta = {k: v[mo] for k, v in meta.items()}
+    mlines = mlines[mo]
+    mt = meta["trackId"].astype(np.int64)
+    dup = np.flatnonzero(np.diff(mt) == 0)
+    if dup.size:
+        k = int(dup[0])
+        raise DatasetError(
+            f"{f_meta}:trackId",
+            f"track {mt[k]} has two rows (lines {min(mlines[k], mlines[k + 1])} and "
+            f"{max(mlines[k], mlines[k + 1])}); expected one row per track",
+        )
+    # tracks: one row per track and frame
     tid = rows["trackId"].astype(np.int64)
     order = np.lexsort((rows["frame"], tid))
     rows = {k: v[order] for k, v in rows.items()}
     rows["laneletId"] = lanelet[order]
-    tid = tid[order]
-    mo = np.argsort(meta["trackId"], kind="stable")
-    meta = {k: v[mo] for k, v in meta.items()}
-    mt = meta["trackId"].astype(np.int64)
+    tid, lines = tid[order], lines[order]
+    fr = rows["frame"].astype(np.int64)
+    twice = np.flatnonzero((np.diff(tid) == 0) & (np.diff(fr) == 0))
+    if twice.size:
+        k = int(twice[0])
+        a, b = sorted((int(lines[k]), int(lines[k + 1])))
+        raise DatasetError(
+            f"{f_trk}:frame",
+            f"track {tid[k]} has frame {fr[k]} twice (lines {a} and {b}); expected one row "
+            "per track and frame",
+        )
     ids, start, counts = np.unique(tid, return_index=True, return_counts=True)
     if len(ids) != len(mt) or np.any(ids != mt):
-        extra = sorted(set(ids.tolist()) ^ set(mt.tolist()))[:5]
+        only_rows = sorted(set(ids.tolist()) - set(mt.tolist()))
+        only_meta = sorted(set(mt.tolist()) - set(ids.tolist()))
+        if only_rows:
+            raise DatasetError(
+                f"{f_trk}:trackId",
+                f"track(s) {only_rows[:5]} have rows here but none in {f_meta.name}",
+            )
         raise DatasetError(
             f"{f_trk}:trackId",
-            f"tracks and {f_meta.name} list different tracks (e.g. {extra}; truncated file?)",
+            f"track(s) {only_meta[:5]} of {f_meta.name} have no rows here (truncated file?)",
         )
     nf = meta["numFrames"].astype(np.int64)
     bad = np.flatnonzero(counts != nf)
@@ -394,18 +613,25 @@ def read_recording(raw: str | FilePath, rid: int) -> Recording:
             f"track {int(ids[j])} has {int(counts[j])} rows, {f_meta.name} says numFrames "
             f"{int(nf[j])} (truncated file?)",
         )
-    fr = rows["frame"]
     ok = (fr[start] == meta["initialFrame"]) & (fr[start + counts - 1] == meta["finalFrame"])
     gaps = np.diff(fr) != 1
     gaps[start[1:] - 1] = False
     if not ok.all() or gaps.any():
+        if ok.all():  # the track of the first gap
+            j = int(np.searchsorted(start, int(np.argmax(gaps)), side="right") - 1)
+        else:
+            j = int(np.argmin(ok))
+        a, b = int(start[j]), int(start[j] + counts[j] - 1)
         raise DatasetError(
             f"{f_trk}:frame",
-            "frames of a track must run from its initialFrame to its finalFrame without gaps",
+            f"track {int(ids[j])} has frames {int(fr[a])}..{int(fr[b])} with "
+            f"{int(gaps[a:b].sum())} gap(s); {f_meta.name} says initialFrame "
+            f"{int(meta['initialFrame'][j])}, finalFrame {int(meta['finalFrame'][j])}: "
+            "expected every frame from initialFrame to finalFrame",
         )
     return Recording(
         id=int(rid),
-        location=int(rec["locationId"]),
+        location=rec["locationId"],
         frame_rate=float(rec["frameRate"]),
         speed_limit=rec["speedLimit"],
         utm_origin=(rec["xUtmOrigin"], rec["yUtmOrigin"]),
@@ -448,6 +674,36 @@ class LaneletMap:
         return out
 
 
+def map_distance(lmap: LaneletMap, rec: Recording) -> tuple[float, int, np.ndarray]:
+    """How far the map's road is from the recording's tracks: the largest, over every
+    track's first, middle and last position, of the distance to the nearest lanelet (its
+    centre line less half its width; 0 on a lanelet). Returns ``(distance, trackId,
+    position)`` of the farthest."""
+    first = rec.start
+    last = np.append(rec.start[1:], len(rec.rows["frame"])) - 1
+    k = np.concatenate([first, (first + last) // 2, last])
+    pts = np.stack([rec.rows["xCenter"][k], rec.rows["yCenter"][k]], axis=1)
+    d = np.maximum(lmap.road_map.distance_to_road(pts), 0.0)
+    i = int(np.argmax(d))
+    tid = int(rec.meta["trackId"][i % rec.n_tracks])
+    return float(d[i]), tid, pts[i]
+
+
+def check_map_near(lmap: LaneletMap, rec: Recording, bound: float = MAP_DISTANCE) -> None:
+    """Refuse a map whose road lies farther than ``bound`` metres from a track of ``rec``
+    (:func:`map_distance`): the map of another location, lat/lon swapped, a wrong UTM
+    origin."""
+    d, tid, p = map_distance(lmap, rec)
+    if not d <= bound:
+        raise DatasetError(
+            lmap.path,
+            f"the map's lanes are {d:,.0f} m from track {tid} of recording {rec.id:02d} "
+            f"(at x {p[0]:,.1f}, y {p[1]:,.1f} m); expected every track within {bound:g} m of "
+            "a lanelet (the map of another location? lat/lon swapped? a wrong "
+            "xUtmOrigin/yUtmOrigin?)",
+        )
+
+
 def find_map(raw: str | FilePath, location: int) -> FilePath:
     """The ``.osm`` map of ``location`` in the release (module docstring)."""
     raw = FilePath(raw)
@@ -470,11 +726,36 @@ def _speed(text: str, where: str) -> float | None:
     t = text.strip().lower()
     if t in ("", "none", "no", "-1", "unlimited"):
         return None
-    m = re.fullmatch(r"([0-9.]+)\s*(km/h|kmh|kph|mph)?", t)
-    if not m:
-        raise DatasetError(where, f"expected a speed like '100' or '100 km/h', got {text!r}")
+    m = re.fullmatch(r"(\d+(?:\.\d*)?|\.\d+)\s*(km/h|kmh|kph|mph)?", t)
+    if not m or not 0 < float(m.group(1)) <= 500:
+        raise DatasetError(
+            where, f"expected a speed like '100' or '100 km/h' (0 to 500), got {short_repr(text)}"
+        )
     v = float(m.group(1))
     return v * (0.44704 if m.group(2) == "mph" else 1 / 3.6)
+
+
+def _osm_int(text, where: str, what: str) -> int:
+    """An OSM id or reference (at most 18 digits, optionally signed)."""
+    t = (text or "").strip()
+    if not re.fullmatch(r"-?\d{1,18}", t):
+        raise DatasetError(where, f"expected an integer {what}, got {short_repr(text)}")
+    return int(t)
+
+
+def _osm_float(text, where: str, what: str, bound: float) -> float:
+    """A node coordinate: NaN where absent, else a finite number within ``bound``."""
+    if text is None:
+        return math.nan
+    try:
+        v = float(text)
+    except ValueError:
+        raise DatasetError(where, f"expected a number for {what}, got {short_repr(text)}") from None
+    try:
+        check_number(what, v, lo=-bound, hi=bound)
+    except SpecError as e:
+        raise DatasetError(where, f"{what}: {e.message}") from None
+    return v
 
 
 def read_lanelet_map(
@@ -503,16 +784,13 @@ def read_lanelet_map(
     ids, lat, lon, lx, ly = [], [], [], [], []
     for nd in root.findall("node"):
         t = tags(nd)
-        try:
-            ids.append(int(nd.get("id")))
-            lat.append(float(nd.get("lat", "nan")))
-            lon.append(float(nd.get("lon", "nan")))
-            lx.append(float(t.get("local_x", "nan")))
-            ly.append(float(t.get("local_y", "nan")))
-        except (TypeError, ValueError):
-            raise DatasetError(
-                f"{path}:node", f"node {nd.get('id')!r}: non-numeric id or position"
-            ) from None
+        nid = _osm_int(nd.get("id"), f"{path}:node", "node id")
+        where = f"{path}:node {nid}"
+        ids.append(nid)
+        lat.append(_osm_float(nd.get("lat"), where, "lat", 90.0))
+        lon.append(_osm_float(nd.get("lon"), where, "lon", 180.0))
+        lx.append(_osm_float(t.get("local_x"), where, "local_x", MAX_UTM))
+        ly.append(_osm_float(t.get("local_y"), where, "local_y", MAX_UTM))
     lx, ly, lat, lon = map(np.asarray, (lx, ly, lat, lon))
     if len(ids) and np.all(np.isfinite(lx) & np.isfinite(ly)):
         xy = np.stack([lx, ly], axis=1)
@@ -525,32 +803,40 @@ def read_lanelet_map(
                 "nodes have lat/lon only: the recording's xUtmOrigin/yUtmOrigin are needed",
             )
         zone = utm_zone(lonlat[0]) if lonlat is not None else None
-        e, n = utm_from_latlon(lat, lon, zone)
+        with np.errstate(all="ignore"):
+            e, n = utm_from_latlon(lat, lon, zone)
         xy = np.stack([e - utm_origin[0], n - utm_origin[1]], axis=1)
+        bad = ~np.all(np.isfinite(xy), axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DatasetError(
+                f"{path}:node {ids[i]}",
+                f"lat {lat[i]:g}, lon {lon[i]:g} has no UTM position (a pole?)",
+            )
     node = dict(zip(ids, xy, strict=True))
     ways = {}
     for w in root.findall("way"):
-        refs = [int(r.get("ref")) for r in w.findall("nd")]
+        wid = _osm_int(w.get("id"), f"{path}:way", "way id")
+        refs = [_osm_int(r.get("ref"), f"{path}:way {wid}", "nd ref") for r in w.findall("nd")]
         missing = [r for r in refs if r not in node]
         if missing:
-            raise DatasetError(
-                f"{path}:way", f"way {w.get('id')} refers to unknown node {missing[0]}"
-            )
-        ways[int(w.get("id"))] = np.array([node[r] for r in refs], dtype=float)
+            raise DatasetError(f"{path}:way", f"way {wid} refers to unknown node {missing[0]}")
+        ways[wid] = np.array([node[r] for r in refs], dtype=float).reshape(-1, 2)
     regs = {}
     for r in root.findall("relation"):
         t = tags(r)
         if t.get("type") == "regulatory_element" and t.get("subtype") == "speed_limit":
             v = t.get("speed_limit") or re.sub(r"^de274-?", "", t.get("sign_type", ""))
-            regs[int(r.get("id"))] = _speed(v, f"{path}:relation {r.get('id')}.speed_limit")
+            rid = _osm_int(r.get("id"), f"{path}:relation", "relation id")
+            regs[rid] = _speed(v, f"{path}:relation {rid}.speed_limit")
     raw_lanes = []
     for r in root.findall("relation"):
         t = tags(r)
         if t.get("type") != "lanelet" or t.get("subtype", "road") in SKIP_SUBTYPES:
             continue
-        rid = int(r.get("id"))
+        rid = _osm_int(r.get("id"), f"{path}:relation", "relation id")
         mem = {
-            m.get("role"): int(m.get("ref"))
+            m.get("role"): _osm_int(m.get("ref"), f"{path}:relation {rid}", "member ref")
             for m in r.findall("member")
             if m.get("role") in ("left", "right")
         }
@@ -577,10 +863,17 @@ def read_lanelet_map(
         if "speed_limit" in t:
             sl = _speed(t["speed_limit"], f"{path}:relation {rid}.speed_limit")
         for m in r.findall("member"):
-            if m.get("role") == "regulatory_element" and int(m.get("ref")) in regs:
-                sl = sl if sl is not None else regs[int(m.get("ref"))]
+            ref = m.get("ref")
+            if m.get("role") == "regulatory_element" and ref and ref.strip().isdigit():
+                sl = sl if sl is not None else regs.get(int(ref))
         sl = sl if sl is not None else (speed_limit or DEFAULT_SPEED_LIMIT)
         width = float(np.mean(np.linalg.norm(lc - rc, axis=1)))
+        if not width <= MAX_LANE_WIDTH:
+            raise DatasetError(
+                f"{path}:relation {rid}",
+                f"the lanelet's left and right bounds lie {width:,.1f} m apart on average; "
+                f"expected at most {MAX_LANE_WIDTH:g} m (a misplaced node?)",
+            )
         raw_lanes.append((str(rid), centre, width, sl, mem["left"], mem["right"]))
     if not raw_lanes:
         raise DatasetError(f"{path}:relation", "no lanelet relations (type=lanelet)")
@@ -608,6 +901,8 @@ def read_lanelet_map(
 
 
 def _dedupe(p: np.ndarray) -> np.ndarray:
+    if len(p) < 2:
+        return p
     keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6])
     return p[keep]
 
@@ -684,11 +979,15 @@ class ExidRecipe:
     def __post_init__(self):
         p = "exid"
         try:
-            recs = tuple((int(a), int(b)) for a, b in self.recordings)
+            recs = tuple((a, b) for a, b in self.recordings)
         except (TypeError, ValueError):
             raise SpecError(
                 f"{p}.recordings", "expected [[recording id, location id], ...]"
             ) from None
+        recs = tuple(
+            (_id(f"{p}.recordings[{i}][0]", a), _id(f"{p}.recordings[{i}][1]", b))
+            for i, (a, b) in enumerate(recs)
+        )
         object.__setattr__(self, "recordings", recs)
         if isinstance(self.test_locations, (str, bytes)) or not isinstance(
             self.test_locations, (list, tuple)
@@ -697,21 +996,23 @@ class ExidRecipe:
                 f"{p}.test_locations",
                 f"expected a list of location ids, got {self.test_locations!r}",
             )
-        object.__setattr__(self, "test_locations", tuple(int(x) for x in self.test_locations))
+        locs = tuple(_id(f"{p}.test_locations[{i}]", x) for i, x in enumerate(self.test_locations))
+        object.__setattr__(self, "test_locations", locs)
         if not isinstance(self.raw_digest, str):
             raise SpecError(f"{p}.raw_digest", "expected a string")
-        for k, lo in (
-            ("agents", 2),
-            ("history", 1),
-            ("horizon", 2),
-            ("modes", 1),
-            ("stride", 1),
-            ("max_scenes_per_recording", 0),
-            ("lane_points", 2),
-            ("goal_points", 3),
-            ("collision_every", 1),
+        for k, lo, hi in (
+            ("agents", 2, 32),
+            ("history", 1, 1000),
+            ("horizon", 2, 1000),
+            ("modes", 1, 100),
+            ("stride", 1, 10**6),
+            ("max_scenes_per_recording", 0, 10**6),
+            ("lane_points", 2, 1000),
+            ("goal_points", 3, 3000),
+            ("collision_every", 1, 1000),
         ):
             check_number(f"{p}.{k}", getattr(self, k), lo=lo, integer=True)
+            check_size(f"{p}.{k}", getattr(self, k), hi, "the size of every sample", lo=lo)
         if self.goal_points % 3:
             raise SpecError(f"{p}.goal_points", f"expected a multiple of 3, got {self.goal_points}")
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=2.0)
@@ -742,6 +1043,13 @@ class ExidRecipe:
         return cls(**d)
 
 
+def _id(field: str, x) -> int:
+    """A recording or location id: an integer (numpy's too) in ``[0, MAX_ID]``."""
+    if isinstance(x, numbers.Integral) and not isinstance(x, bool):
+        x = int(x)
+    return check_number(field, x, lo=0, hi=MAX_ID, integer=True)
+
+
 def raw_digest(raw: str | FilePath, recordings: Sequence[int]) -> str:
     """sha256 over the names and sizes of the tracks files and the contents of the meta
     files and maps (a different raw set refuses to resume a dataset)."""
@@ -756,7 +1064,7 @@ def raw_digest(raw: str | FilePath, recordings: Sequence[int]) -> str:
         for n in ("tracksMeta", "recordingMeta"):
             f = d / f"{rid:02d}_{n}.csv"
             h.update(f.read_bytes() if f.exists() else b"-")
-        locs.add(int(_recording_meta(d / f"{rid:02d}_recordingMeta.csv")["locationId"]))
+        locs.add(_recording_meta(d / f"{rid:02d}_recordingMeta.csv", rid)["locationId"])
     for loc in sorted(locs):
         h.update(find_map(raw, loc).read_bytes())
     return h.hexdigest()
@@ -793,7 +1101,7 @@ class ExidScenario(Scenario):
             )
         recs = []
         for rid in ids:
-            m = _recording_meta(dirs[rid] / f"{rid:02d}_recordingMeta.csv")
+            m = _recording_meta(dirs[rid] / f"{rid:02d}_recordingMeta.csv", rid)
             recs.append((rid, int(m["locationId"])))
         recipe = ExidRecipe.from_dict(
             {**overrides, "recordings": recs, "raw_digest": raw_digest(raw, ids)}
@@ -934,12 +1242,14 @@ class ExidScenario(Scenario):
         lmap = read_lanelet_map(
             find_map(self.raw, rec.location), rec.utm_origin, rec.lonlat, rec.speed_limit
         )
+        check_map_near(lmap, rec)
         return rec, lmap
 
     def resample(self, rec: Recording, lmap: LaneletMap) -> dict:
         """Per track, the samples on the ``dt`` grid: ``x`` ``(n_tracks, S, 4)`` states and
         ``lanelet`` ``(n_tracks, S)`` (NaN / -1 where the track does not exist),
-        ``first`` / ``last`` sample index per track, ``grid`` frames ``(S,)``."""
+        ``first`` / ``last`` sample index per track, ``grid`` frames ``(S,)`` (from the first
+        grid frame of the recording), ``step`` frames per sample."""
         r = self.recipe
         step = r.dt * rec.frame_rate
         if abs(step - round(step)) > 1e-6 or round(step) < 1:
@@ -952,10 +1262,18 @@ class ExidScenario(Scenario):
         fr = rows["frame"].astype(np.int64)
         on = fr % step == 0
         tid = np.repeat(np.arange(rec.n_tracks), np.diff(np.append(rec.start, len(fr))))
-        S = int(fr.max() // step) + 1
+        k0 = int(-(-fr.min() // step))  # the first grid frame is k0 * step
+        S = max(int(fr.max() // step) - k0 + 1, 1)
+        check_size(
+            f"{rec.files[0]}:frame",
+            rec.n_tracks * S,
+            MAX_GRID_CELLS,
+            f"memory: {rec.n_tracks} tracks x {S} samples of {r.dt} s from frame "
+            f"{k0 * step} to {int(fr.max())}",
+        )
         x = np.full((rec.n_tracks, S, 4), np.nan)
         lan = np.full((rec.n_tracks, S), -1, dtype=np.int64)
-        j, k = tid[on], fr[on] // step
+        j, k = tid[on], fr[on] // step - k0
         head = np.radians(rows["heading"][on])
         x[j, k] = np.stack(
             [
@@ -981,7 +1299,32 @@ class ExidScenario(Scenario):
         filled = np.where(exists, th, 0.0)
         filled = np.unwrap(filled, axis=1)
         x[..., 3] = np.where(exists, filled, np.nan)
-        return {"x": x, "lanelet": lan, "first": first, "last": last, "grid": np.arange(S) * step}
+        grid = (k0 + np.arange(S)) * step
+        return {
+            "x": x,
+            "lanelet": lan,
+            "first": first,
+            "last": last,
+            "grid": grid,
+            "step": step,
+        }
+
+    def check_windows(self, rec: Recording, res: dict) -> None:
+        """Refuse a recording of which no sample can be made: fewer than ``agents`` tracks
+        span the ``history + 1 + horizon`` samples of a scene (all tracks too short for the
+        window, or a ``frameRate`` that puts too few samples in each)."""
+        r = self.recipe
+        need = r.history + 1 + r.horizon
+        span = np.maximum(res["last"] - res["first"] + 1, 0)
+        n = int((span >= need).sum())
+        if n < r.agents:
+            raise DatasetError(
+                rec.files[0],
+                f"recording {rec.id:02d}: no sample can be made: a scene needs {r.agents} "
+                f"tracks that each span {need} samples ({(need - 1) * r.dt:g} s), {n} do; "
+                f"the longest spans {int(span.max(initial=0))} (a sample every "
+                f"{res['step']} frames at frameRate {rec.frame_rate:g} Hz)",
+            )
 
     def scenes(self, res: dict, lmap: LaneletMap) -> list[tuple[int, tuple[int, ...], np.ndarray]]:
         """``(t, agents, changes)`` of every scene (module docstring, step 3); ``changes``:
@@ -1073,6 +1416,7 @@ class ExidScenario(Scenario):
         on = np.ones((N, 3), dtype=bool)
         vref = np.empty(N)
         rm = lmap.road_map
+        meta_tid = rec.meta["trackId"]
         for a, j in enumerate(ag):
             p = res["x"][j, t, :2]
             v = float(res["x"][j, t, 2])
@@ -1088,13 +1432,15 @@ class ExidScenario(Scenario):
             ahead = np.linspace(r.goal_near * span, r.goal_far * span + r.goal_margin, G // 3)
             win = np.linspace(-r.lane_behind, r.lane_ahead, P)
             line, _ = self._corridor(lmap, sid, cache)
-            s, _ = project_to_polyline(p[None], line)
+            s, dist = project_to_polyline(p[None], line)
+            _check_near(lmap, sid, dist[0], rec, int(meta_tid[j]), int(res["grid"][t]))
             centre_w = _along(line, s[0] + win)
             centre_c = _along(line, s[0] + ahead)
             for side, nb, sign in ((0, lmap.left.get(sid), 1.0), (2, lmap.right.get(sid), -1.0)):
                 if nb is not None:
                     nline, _ = self._corridor(lmap, nb, cache)
-                    ns, _ = project_to_polyline(p[None], nline)
+                    ns, dist = project_to_polyline(p[None], nline)
+                    _check_near(lmap, nb, dist[0], rec, int(meta_tid[j]), int(res["grid"][t]))
                     lanes[a, side] = _along(nline, ns[0] + win)
                     cands[a, side] = _along(nline, ns[0] + ahead)
                 else:
@@ -1138,6 +1484,7 @@ class ExidScenario(Scenario):
         rid = self.recipe.recordings[index][0]
         rec, lmap = self.load(rid)
         res = self.resample(rec, lmap)
+        self.check_windows(rec, res)
         cache: dict = {}
         rows = [self.cut(res, rec, lmap, sc, cache) for sc in self.scenes(res, lmap)]
         schema = self.schema()
@@ -1147,6 +1494,16 @@ class ExidScenario(Scenario):
             k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
             for k, fs in schema.items()
         }
+
+
+def _check_near(lmap: LaneletMap, lid: str, d: float, rec: Recording, tid: int, frame: int):
+    """Refuse a lane (corridor centre line) farther than :data:`MAP_DISTANCE` from its agent."""
+    if not d <= MAP_DISTANCE:
+        raise DatasetError(
+            lmap.path,
+            f"lanelet {lid} is {d:,.0f} m from track {tid} of recording {rec.id:02d} at frame "
+            f"{frame}; expected the lanes of a sample within {MAP_DISTANCE:g} m of its agent",
+        )
 
 
 def _straightest(rm: RoadMap, cur: Lane, ids: Sequence[str], forward: bool) -> Lane:
