@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from epo_casadi.errors import EpoError, SpecError
+from epo_casadi.errors import EpoError, SpecError, check_size
 from solvers.control.plan import failed_plan
 from solvers.control.types import Estimate, Observation, Plan
 
@@ -342,7 +342,7 @@ class PlannerOptions:
     others_goals: str = "given"  #: "given": the world's task goals (the dataset gives goals,
     #: paper App. F.3 for RPI); "constant_velocity": where each other agent is after the
     #: horizon at its estimated speed and heading
-    threads: int = 1  #: torch intra-op threads during a plan (1: one core)
+    threads: int = 1  #: torch intra-op threads during a plan (1: one core), at most 256
     layer_backend: str = "fused"  #: Gauss-Newton backend of ours' game layer while planning:
     #: "fused" (solvers.fast_gn.FusedGN, compiled to C when a compiler is found, else
     #: interpreted; equal to the trained backend to 1e-12 and about 3-5x less CPU per plan,
@@ -359,8 +359,9 @@ class PlannerOptions:
                 "planner.others_goals",
                 f"expected 'given' or 'constant_velocity', got {self.others_goals!r}",
             )
-        if isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1:
-            raise SpecError("planner.threads", f"expected an integer >= 1, got {self.threads!r}")
+        object.__setattr__(
+            self, "threads", check_size("planner.threads", self.threads, 256, "threads")
+        )
 
     @classmethod
     def from_dict(cls, d: Mapping) -> PlannerOptions:
@@ -481,6 +482,9 @@ class NetworkPlanner:
         self._ego: list[np.ndarray] = []
         self._goals: np.ndarray | None = None
         self.extra_fields = SCENE_FIELDS.get(spec.scenario)
+        #: what identifies the trained model: ``{"checkpoint": file name, "sha256": of the
+        #: file, "epoch", "step"}`` (set by :func:`load_planner`; None for a model given here)
+        self.identity: dict | None = None
 
     @property
     def history_steps(self) -> int:
@@ -536,7 +540,11 @@ class NetworkPlanner:
         """The ego's strategy in the most likely joint mode, in the world frame (see module doc)."""
         t0 = time.perf_counter()
         dt = self.spec.dt
+        t = getattr(obs, "t", math.nan)
         try:
+            t = float(t)
+            if not math.isfinite(t):
+                raise ValueError(f"expected an Observation with a finite time t, got {t!r}")
             scene, frame = self.scene(obs, est)
             out = self.run(scene)
             best = sdv_strategy(out, 0)
@@ -554,10 +562,10 @@ class NetworkPlanner:
 
                 info["solver_status"] = [s.name for s in decode_status(out["status"][0])]
             if not ok:
-                return self._failed(obs.t, "the model output is not finite", info)
+                return self._failed(t, "the model output is not finite", info)
             pred = frame.states_out(X)
             return Plan(
-                obs.t,
+                t,
                 dt,
                 pred[best.mode[0].item(), 0],
                 U,
@@ -567,10 +575,14 @@ class NetworkPlanner:
             )
         except Exception as e:  # noqa: BLE001 - a plan never raises (module docstring)
             return self._failed(
-                obs.t, f"{type(e).__name__}: {e}", {"latency_s": time.perf_counter() - t0}
+                t, f"{type(e).__name__}: {e}", {"latency_s": time.perf_counter() - t0}
             )
 
-    def _failed(self, t: float, message: str, info: dict) -> Plan:
+    def _failed(self, t, message: str, info: dict) -> Plan:
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            t = math.nan
         return failed_plan(t, self.spec.dt, self.spec.horizon, message, **info)
 
 
@@ -652,7 +664,12 @@ def load_planner(
     (``world.scenario``); other shapes than the world's (``world.n_agents``, ``world.dt``,
     ``world.horizon``, ``world.history`` where the world states them); a unicycle state
     size other than 4 (``game.state_size``); dataset fields the planner cannot build.
+    The planner's :attr:`~NetworkPlanner.identity` names the checkpoint file, its SHA-256
+    and its epoch and step (``epo simulate`` records it, so a run is never resumed with
+    another model).
     """
+    from scenarios.dataset import sha256_file
+
     from .data import dataset_game
     from .train import CheckpointError, _checkpoint_config, load_checkpoint, load_model
 
@@ -678,6 +695,7 @@ def load_planner(
         raise CheckpointError(
             str(path), "missing: not a training run directory (or it never finished an epoch)"
         )
+    sha = sha256_file(path)
     ck = load_checkpoint(path)
     cfg = _checkpoint_config(ck, str(path))
     kind = cfg.model.kind
@@ -749,6 +767,16 @@ def load_planner(
         fields=tuple(k for k in schema if k not in ("history", "future")),
         recipe=data.get("recipe"),
     )
+    if sha256_file(path) != sha:
+        raise CheckpointError(
+            str(path), "changed while it was being read (a training run writing it?); try again"
+        )
     planner = NetworkPlanner(model, spec, options)
+    planner.identity = {
+        "checkpoint": path.name,
+        "sha256": sha,
+        "epoch": int(ck["epoch"]),
+        "step": int(ck["step"]) if ck.get("step") is not None else None,
+    }
     planner.reset(world)
     return planner

@@ -33,15 +33,25 @@ Parallel runs (:func:`run_episodes`)
     Episode ``i`` uses seed ``seed + i`` and a stack built fresh from the configuration,
     so its result does not depend on the engine, the workers or the order. Episodes run on
     the engines of data generation (:mod:`scenarios.dataset`: a local process pool or
-    Dask). Results go to ``DIR/episodes/episode-NNNNN.json`` (written to a temporary file
-    and renamed); a run started again with the same configuration and seed keeps every
-    finished episode and runs the rest (and again the episodes that ended in ``"error"``).
-    ``DIR/summary.md`` and ``DIR/summary.csv`` hold the table over the episodes,
-    ``DIR/episodes.csv`` one row per episode.
+    Dask), at most :data:`MAX_EPISODES` per run (every episode's result is held for the
+    summary). Results go to ``DIR/episodes/episode-NNNNN.json`` (written atomically,
+    :func:`scenarios.files.write_atomic`; an unwritable folder or a full disk is one
+    :class:`~epo_casadi.errors.OutputError`); one run writes into a folder at a time
+    (:func:`scenarios.files.output_lock`). ``DIR/config.json`` records the configuration,
+    the seed and, for a trained planner, what identifies its model (the checkpoint file,
+    its SHA-256, epoch and step: ``config.model_checkpoint``); a run started again with the
+    same record keeps every finished episode and runs the rest (and again the episodes that
+    ended in ``"error"``), one with another record is refused naming the fields that
+    differ, so episodes of two models (a run trained further in between) never mix. Within
+    a run every worker checks that it loads the same checkpoint. ``DIR/summary.md`` and
+    ``DIR/summary.csv`` hold the table over the episodes (``summary.md`` also says how many
+    episodes ended in an error, and the first error), ``DIR/episodes.csv`` one row per
+    episode.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -49,14 +59,15 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
-from scenarios.dataset import FieldSpec, Scenario, fsync_replace
+from epo_casadi.errors import SpecError, check_number, check_size, short_repr
+from scenarios.dataset import FieldSpec, Scenario
+from scenarios.files import check_output_dir, output_lock, write_atomic
 from solvers.control.types import Command, Plan, World
 
 __all__ = [
@@ -72,11 +83,19 @@ __all__ = [
     "usable",
     "summarize",
     "write_summary",
+    "error_note",
     "load_results",
     "load_log",
     "OUTCOMES",
     "SUMMARY_COLUMNS",
+    "MAX_EPISODES",
+    "MAX_WORKERS",
 ]
+
+#: most episodes of one run (every result is held in memory for the summary)
+MAX_EPISODES = 100_000
+#: most worker processes of one run
+MAX_WORKERS = 1024
 
 #: every outcome an episode can end with ("error": the episode raised, see its message)
 OUTCOMES = ("success", "collision", "timeout", "off_road", "error")
@@ -499,7 +518,10 @@ class SimConfig:
     :class:`~solvers.control.plan.PlannerOptions`) or ``"model"`` / ``"sc"`` (a trained
     run in ``model``, loaded by ``learning.control.load_planner``); ``tracker``: ``"pid"``
     or ``"mpc"`` (:mod:`solvers.control.track`); ``world_options`` go to
-    ``scenarios.sim.make_world(scenario, **world_options)``.
+    ``scenarios.sim.make_world(scenario, **world_options)``. ``model_checkpoint``: what
+    identifies the trained model (``NetworkPlanner.identity``: checkpoint file, SHA-256,
+    epoch, step); when set, :meth:`build` refuses a run directory whose checkpoint is
+    another (:func:`run_episodes` sets it from the first build: :meth:`pinned`).
     """
 
     scenario: str
@@ -510,6 +532,7 @@ class SimConfig:
     planner_options: dict = field(default_factory=dict)
     tracker_options: dict = field(default_factory=dict)
     estimator_options: dict = field(default_factory=dict)
+    model_checkpoint: dict | None = None
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
@@ -537,7 +560,15 @@ class SimConfig:
             "planner_options": dict(self.planner_options),
             "tracker_options": dict(self.tracker_options),
             "estimator_options": dict(self.estimator_options),
-        }
+        } | ({"model_checkpoint": dict(self.model_checkpoint)} if self.model_checkpoint else {})
+
+    def pinned(self, planner) -> SimConfig:
+        """This configuration with ``model_checkpoint`` set from a built network planner's
+        ``identity`` (unchanged for the other planners or when already set)."""
+        ident = getattr(planner, "identity", None)
+        if self.model_checkpoint is not None or not isinstance(ident, dict):
+            return self
+        return replace(self, model_checkpoint=dict(ident))
 
     @property
     def label(self) -> str:
@@ -564,7 +595,22 @@ class SimConfig:
             planner = _network_planner(
                 self.model, self.scenario, self.planner_options, self.planner
             )
+            _check_identity(self.model, self.model_checkpoint, getattr(planner, "identity", None))
         return world, estimator, planner, tracker
+
+
+def _check_identity(model: str, want: dict | None, got: dict | None) -> None:
+    """Refuse a loaded model that is not the one the run recorded (``model_checkpoint``)."""
+    if want is None or got is None:
+        return
+    for k in ("checkpoint", "sha256", "epoch", "step"):
+        if want.get(k) != got.get(k):
+            raise SpecError(
+                f"model_checkpoint.{k}",
+                f"the run recorded {short_repr(want.get(k))}, the model at {model} now has "
+                f"{short_repr(got.get(k))}: its checkpoint changed (trained further?); "
+                "simulate it into another --out",
+            )
 
 
 def _network_planner(model: str, scenario: str, options: dict, name: str):
@@ -643,19 +689,11 @@ def _episode_path(d: Path, i: int) -> Path:
 
 
 def _write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-    fsync_replace(tmp, path)
+    write_atomic(path, text)
 
 
 def _write_npz(path: Path, arrays: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    fsync_replace(tmp, path)
+    write_atomic(path, lambda f: np.savez_compressed(f, **arrays))
 
 
 def load_log(path: str | os.PathLike) -> EpisodeLog:
@@ -689,34 +727,40 @@ def run_episodes(
     progress: bool = True,
     client=None,
     address: str | None = None,
+    scheduler_timeout: float = 10.0,
 ) -> RunReport:
     """Run ``episodes`` episodes of ``config`` (seeds ``seed .. seed + episodes - 1``).
 
     ``config``: a :class:`SimConfig` or any picklable object with ``to_dict()`` and
-    ``build()``. ``engine``: ``"local"`` (``workers`` processes) or ``"dask"`` (``client``,
-    scheduler ``address`` or a new local cluster). With ``out``, results are written as
-    the module docstring says and an interrupted run resumes; the logs of the episodes in
-    ``keep_logs`` are saved as ``episodes/episode-NNNNN.npz`` and returned.
+    ``build()`` (and optionally ``pinned(planner)``, see :meth:`SimConfig.pinned`).
+    ``engine``: ``"local"`` (``workers`` processes) or ``"dask"`` (``client``, scheduler
+    ``address``, waited for ``scheduler_timeout`` s, or a new local cluster). With ``out``,
+    results are written as the module docstring says and an interrupted run resumes; the
+    logs of the episodes in ``keep_logs`` are saved as ``episodes/episode-NNNNN.npz`` and
+    returned. ``episodes`` is at most :data:`MAX_EPISODES`, ``workers`` at most
+    :data:`MAX_WORKERS` (:func:`~epo_casadi.errors.check_size`, before any work).
     """
-    from scenarios.dataset import _iter_dask, _iter_local, _lock
+    from scenarios.dataset import _iter_dask, _iter_local
 
-    check_number("episodes", episodes, lo=1, integer=True)
+    episodes = check_size("episodes", episodes, MAX_EPISODES, "results held in memory")
     check_number("seed", seed, lo=0, integer=True)
-    check_number("workers", workers, lo=1, integer=True)
+    workers = check_size("workers", workers, MAX_WORKERS, "processes")
+    check_number("scheduler_timeout", scheduler_timeout, lo=0, lo_open=True)
     if engine not in ("local", "dask"):
         raise SpecError("engine", f"expected 'local' or 'dask', got {engine!r}")
     t0 = time.perf_counter()
-    config.build()  # input errors surface here, in one line, before any worker starts
+    stack = config.build()  # input errors surface here, in one line, before any worker starts
+    pin = getattr(config, "pinned", None)
+    if callable(pin):  # a trained planner: every worker must load this very checkpoint
+        config = pin(stack[2])
+    del stack
     header = {"format_version": FORMAT_VERSION, "config": config.to_dict(), "seed": int(seed)}
     done: dict[int, EpisodeResult] = {}
     logs: dict[int, EpisodeLog] = {}
     d = Path(out) if out is not None else None
     lock = _nullcontext()
     if d is not None:
-        if d.exists() and not d.is_dir():
-            raise SpecError("out", f"{d} exists and is not a directory")
-        d.mkdir(parents=True, exist_ok=True)
-        lock = _lock(d)
+        lock = output_lock(check_output_dir(d), "epo simulate")
     with lock:
         if d is not None:
             cpath = d / CONFIG
@@ -725,15 +769,23 @@ def run_episodes(
                     old = json.loads(cpath.read_text())
                 except (OSError, ValueError) as e:
                     raise SpecError(str(cpath), f"unreadable ({e})") from None
-                if _canon(old) != _canon(header):
+                diff = _differences(old, json.loads(_canon(header)))
+                if diff:
                     raise SpecError(
                         str(cpath),
-                        "holds a run with another configuration or seed; use another --out",
+                        "holds a run with another configuration or seed: "
+                        + "; ".join(
+                            f"{k} ({short_repr(a, 60)} there, {short_repr(b, 60)} asked)"
+                            for k, a, b in diff[:4]
+                        )
+                        + ("; ..." if len(diff) > 4 else "")
+                        + "; use another --out",
                     )
             else:
                 _write_text(cpath, json.dumps(header, indent=1) + "\n")
             for tmp in (d / "episodes").glob(".*.tmp"):
-                tmp.unlink()
+                with contextlib.suppress(OSError):  # left by a killed run
+                    tmp.unlink()
             for r in load_results(d, episodes):
                 npz = _episode_path(d, r.index).with_suffix(".npz")
                 stale = r.seed != seed + r.index or r.outcome == "error"  # errors run again
@@ -742,18 +794,19 @@ def run_episodes(
                 done[r.index] = r
                 if r.index in keep_logs:
                     logs[r.index] = load_log(npz)
-        todo = [i for i in range(episodes) if i not in done]
+        n_todo = episodes - len(done)
+        todo = (i for i in range(episodes) if i not in done)  # lazily: never a list of all
         job = EpisodeJob(config, seed, keep_logs)
         bar = it = None
-        if progress and todo:
+        if progress and n_todo:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(todo), unit="episode", desc=_label(config), dynamic_ncols=True)
+            bar = tqdm(total=n_todo, unit="episode", desc=_label(config), dynamic_ncols=True)
         try:
             if engine == "local":
                 it = _iter_local(job, todo, seed, workers)
             else:
-                it = _iter_dask(job, todo, seed, workers, client, address)
+                it = _iter_dask(job, todo, seed, workers, client, address, scheduler_timeout)
             counts: dict[str, int] = {}
             for index, arrays, _ in it:
                 res: EpisodeResult = arrays["episode"][0]
@@ -781,11 +834,26 @@ def run_episodes(
         str(d) if d is not None else None,
         results,
         summary,
-        len(todo),
-        episodes - len(todo),
+        n_todo,
+        episodes - n_todo,
         time.perf_counter() - t0,
         logs,
     )
+
+
+_MISSING = "(absent)"
+
+
+def _differences(old, new, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """The dotted fields (``config.model_checkpoint.sha256``) where two JSON records differ,
+    with both values."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in [*old, *(k for k in new if k not in old)]:
+            key = f"{prefix}.{k}" if prefix else str(k)
+            out += _differences(old.get(k, _MISSING), new.get(k, _MISSING), key)
+        return out
+    return [] if old == new else [(prefix or "record", old, new)]
 
 
 class _nullcontext:
@@ -899,10 +967,28 @@ EPISODE_COLUMNS = (
 )
 
 
+def error_note(results: Sequence[EpisodeResult]) -> str | None:
+    """``"2 of 5 episodes ended in an error; the first, episode 1 (seed 1): ..."``, or None
+    when none did."""
+    errors = [r for r in results if r.outcome == "error"]
+    if not errors:
+        return None
+    e = errors[0]
+    return (
+        f"{len(errors)} of {len(results)} episodes ended in an error; the first, episode "
+        f"{e.index} (seed {e.seed}): {e.message}"
+    )
+
+
 def write_summary(directory: str | os.PathLike, results: Sequence[EpisodeResult], summary: dict):
-    """Write ``summary.md``, ``summary.csv`` and ``episodes.csv`` atomically."""
+    """Write ``summary.md``, ``summary.csv`` and ``episodes.csv`` atomically.
+
+    ``summary.md`` is the table, then (when episodes ended in an error) one line saying how
+    many and the first error (:func:`error_note`)."""
     d = Path(directory)
-    _write_text(d / "summary.md", summary_markdown([summary]))
+    note = error_note(results)
+    md = summary_markdown([summary]) + (f"\n{note}\n" if note else "")
+    _write_text(d / "summary.md", md)
     _write_text(d / "summary.csv", _csv([summary], [k for k, _, _ in SUMMARY_COLUMNS]))
     rows = [
         {

@@ -283,7 +283,12 @@ def test_summary_handles_every_outcome(tmp_path):
     assert s["plan_p50_ms"] == pytest.approx(np.percentile([10, 20, 11, 20, 12, 20, 13, 20], 50))
     write_summary(tmp_path, results, s)
     md = (tmp_path / "summary.md").read_text()
-    assert md.count("\n") == 3 and "| x | 5 | 0.20 | 0.20 |" in md
+    table, note = md.split("\n\n")
+    assert table.count("\n") == 2 and "| x | 5 | 0.20 | 0.20 |" in table
+    # the episodes that ended in an error are said in words below the table
+    assert note == "1 of 5 episodes ended in an error; the first, episode 4 (seed 4): " + (
+        "RuntimeError: world broke\n"
+    )
     rows = _csv_rows(tmp_path / "episodes.csv")
     assert [r["outcome"] for r in rows] == list(OUTCOMES)
     assert rows[4]["message"] == "RuntimeError: world broke" and rows[4]["min_distance"] == ""

@@ -5,18 +5,25 @@ episodes (seeds ``seed .. seed + episodes - 1``) with :func:`scenarios.closed_lo
 and writes ``DIR/summary.md`` / ``summary.csv`` / ``episodes.csv``, one JSON per episode, and
 the figures: ``DIR/figures/episode-00000.png`` (map, trajectories, predicted modes),
 ``episode-00000.gif`` (animation) and ``latency.png`` (all episodes' planning latencies).
-A run interrupted and started again with the same options keeps its finished episodes.
+A run interrupted and started again with the same options keeps its finished episodes
+(SIGTERM stops it as Ctrl-C does: the worker processes are shut down, exit status 130); a
+rerun with other options, or against a run directory whose model was trained further, is
+refused naming the differing field. ``--workers`` beyond the usable cores is lowered to
+them (one warning line). When every episode ended in an error the command prints one line
+saying so with the first error and exits with status 1; when some did, one warning line
+(and ``summary.md`` says so too).
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import OutputError, SpecError, check_size
 
-from .generate import _cores, _parse_set, engine_options
+from .generate import _cores, _parse_set, capped_workers, engine_options
 
 PLANNERS = ("model", "oracle", "cv", "sc")
 TRACKERS = ("pid", "mpc")
@@ -40,8 +47,21 @@ TRACKERS = ("pid", "mpc")
     show_default=True,
     help="pid: speed and heading PIDs; mpc: OSQP linear time-varying MPC.",
 )
-@click.option("--episodes", type=click.IntRange(min=1), default=200, show_default=True)
+@click.option(
+    "--episodes",
+    type=click.IntRange(min=1),
+    default=200,
+    show_default=True,
+    help="Episodes of the run (at most 100,000).",
+)
 @engine_options(seed_help="Episode i uses seed + i.")
+@click.option(
+    "--scheduler-timeout",
+    type=click.FloatRange(min=0, min_open=True, max=3600),
+    default=10.0,
+    show_default=True,
+    help="Seconds to wait for the --scheduler before giving up with an error.",
+)
 @click.option(
     "--out",
     "out",
@@ -53,13 +73,15 @@ TRACKERS = ("pid", "mpc")
     "--noise",
     type=float,
     default=None,
-    help="Std of the position noise on the other agents (m); default: the scenario's.",
+    help="Std of the position noise on the other agents (m); default: the scenario's "
+    "(world.noise_std).",
 )
 @click.option(
     "--dropout",
     type=float,
     default=None,
-    help="Probability per step that an observed agent drops out; default: the scenario's.",
+    help="Fraction of an observed agent's positions lost, in bursts (world.dropout_prob); "
+    "default: the scenario's.",
 )
 @click.option("--geometry", default=None, help="Intersection geometry (left-turn), e.g. g2.")
 @click.option(
@@ -86,6 +108,7 @@ def simulate(
     workers,
     engine,
     scheduler,
+    scheduler_timeout,
     out,
     noise,
     dropout,
@@ -96,7 +119,8 @@ def simulate(
 ):
     """Closed-loop episodes of SCENARIO (left-turn, merge, crossing) with one planner and
     one tracker; a summary table, per-episode results and figures in --out."""
-    from scenarios.closed_loop import SimConfig, run_episodes
+    from scenarios.closed_loop import MAX_EPISODES, SimConfig, error_note, run_episodes
+    from scenarios.files import sigterm_as_interrupt
     from scenarios.sim import WORLDS
 
     if scenario not in WORLDS:
@@ -120,15 +144,29 @@ def simulate(
                 param_hint="'--set'",
             )
         groups[head][name] = value
-    for name, value in (("noise_std", noise), ("dropout_prob", dropout), ("geometry", geometry)):
-        if value is not None:
-            groups["world"][name] = value
+    for opt, name, value in (
+        ("--noise", "noise_std", noise),
+        ("--dropout", "dropout_prob", dropout),
+        ("--geometry", "geometry", geometry),
+    ):
+        if value is None:
+            continue
+        if name in groups["world"]:
+            raise click.BadParameter(
+                f"sets the world's {name}, and so does --set world.{name}; give only one",
+                param_hint=f"'{opt}'",
+            )
+        groups["world"][name] = value
     if noise is not None and not noise >= 0:
         raise click.BadParameter(f"expected a number >= 0, got {noise}", param_hint="'--noise'")
     if dropout is not None and not 0 <= dropout <= 1:
         raise click.BadParameter(
             f"expected a number in [0, 1], got {dropout}", param_hint="'--dropout'"
         )
+    check_size("--episodes", episodes, MAX_EPISODES, "results held in memory")
+    if scheduler is None:  # processes on this machine: no more than its usable cores
+        workers = capped_workers(workers)
+    workers = workers or _cores()
     config = SimConfig(
         scenario,
         planner=planner,
@@ -139,17 +177,19 @@ def simulate(
         tracker_options=groups["tracker"],
         estimator_options=groups["estimator"],
     )
-    rep = run_episodes(
-        config,
-        episodes,
-        seed=seed,
-        workers=min(workers or _cores(), episodes),
-        engine=engine,
-        out=out,
-        keep_logs=(0,),
-        progress=progress,
-        address=scheduler,
-    )
+    with sigterm_as_interrupt():  # kill PID stops like Ctrl-C: workers shut down, exit 130
+        rep = run_episodes(
+            config,
+            episodes,
+            seed=seed,
+            workers=min(workers, episodes),
+            engine=engine,
+            out=out,
+            keep_logs=(0,),
+            progress=progress,
+            address=scheduler,
+            scheduler_timeout=scheduler_timeout,
+        )
     s = rep.summary
     click.echo(
         f"{out}: {config.label}, {s['episodes']} episodes ({rep.ran} run, {rep.kept} kept) in "
@@ -157,34 +197,48 @@ def simulate(
         f"{s['collision_rate']:.2f}, plan p50 {s['plan_p50_ms']:.1f} ms, RTF {s['rtf']:.2f}"
     )
     errors = [r for r in rep.results if r.outcome == "error"]
+    note = error_note(rep.results)
+    if errors and len(errors) == len(rep.results):
+        click.echo(f"error: {note}", err=True)
+        return 1
     if errors:
-        click.echo(
-            f"warning: {len(errors)} episode(s) failed, first: {errors[0].message}", err=True
-        )
+        click.echo(f"warning: {note}", err=True)
     if figures:
         paths = write_figures(out, rep)
         click.echo("figures: " + ", ".join(str(p) for p in paths))
+    return 0
 
 
 def write_figures(out: Path, rep) -> list[Path]:
-    """Episode plot and GIF of the first episode, latency histogram of all; their paths."""
+    """Episode plot and GIF of the first episode, latency histogram of all; their paths.
+    A figure that cannot be written is one :class:`OutputError` naming it."""
     import numpy as np
 
+    from scenarios.files import ensure_dir
     from scenarios.sim_plots import animate_episode, plot_episode, plot_latency_histogram
 
-    fig_dir = Path(out) / "figures"
-    paths = []
-    log = rep.logs.get(0)
-    if log is not None:
-        r0 = rep.results[0]
-        title = f"episode 0 (seed {r0.seed}): {r0.outcome}"
-        paths.append(fig_dir / "episode-00000.png")
-        plot_episode(log, paths[-1], title=title)
-        paths.append(animate_episode(log, fig_dir / "episode-00000.gif", title=title))
-        dt = log.dt
-    else:
-        dt = 0.1
-    ms = np.concatenate([np.asarray(r.plan_ms, dtype=float) for r in rep.results] or [[]])
-    paths.append(fig_dir / "latency.png")
-    plot_latency_histogram(ms, dt, paths[-1])
+    fig_dir = ensure_dir(Path(out) / "figures")
+    paths: list[Path] = []
+    try:
+        log = rep.logs.get(0)
+        if log is not None:
+            r0 = rep.results[0]
+            title = f"episode 0 (seed {r0.seed}): {r0.outcome}"
+            paths.append(fig_dir / "episode-00000.png")
+            plot_episode(log, paths[-1], title=title)
+            paths.append(fig_dir / "episode-00000.gif")
+            animate_episode(log, paths[-1], title=title)
+            dt = log.dt
+        else:
+            dt = 0.1
+        ms = np.concatenate([np.asarray(r.plan_ms, dtype=float) for r in rep.results] or [[]])
+        paths.append(fig_dir / "latency.png")
+        plot_latency_histogram(ms, dt, paths[-1])
+    except OutputError:
+        raise
+    except OSError as e:
+        for tmp in fig_dir.glob(".*.tmp*"):  # the GIF writer's temporary file
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        raise OutputError(paths[-1] if paths else fig_dir, e.strerror or str(e)) from None
     return paths

@@ -9,14 +9,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 
 __all__ = [
     "OUTCOMES",
     "Character",
     "Sensor",
     "build_options",
+    "check_episode_sizes",
     "check_range",
+    "check_sensor",
     "circles_overlap",
     "gap_decision",
     "seeds",
@@ -25,6 +27,12 @@ __all__ = [
 ]
 
 OUTCOMES = ("running", "success", "collision", "timeout", "off_road")
+
+#: most steps of an episode (``max_steps``) and of a dropout (``dropout_burst``): an episode's
+#: log holds every step's plan and predictions
+MAX_STEPS = 100_000
+#: most points of an agent's task path (``n_path``)
+MAX_PATH = 10_000
 
 
 def build_options(cls, scenario: str, options: dict):
@@ -151,16 +159,23 @@ def circles_overlap(positions: np.ndarray, radii: np.ndarray, pairs=None) -> boo
 
 class Sensor:
     """Noisy positions of the other agents: Gaussian noise of std ``noise_std`` (m) on each
-    coordinate and dropouts: an observed agent starts a dropout with probability
-    ``dropout_prob`` per step, which lasts ``dropout_burst`` steps (its rows are ``NaN``).
-    Noise is drawn every step for every agent, so the stream of numbers does not depend on
-    the dropouts."""
+    coordinate and dropouts in bursts of ``dropout_burst`` steps (the rows are ``NaN``).
+
+    ``dropout_prob`` ``p`` is the fraction of measurements lost, on average: an observed
+    agent starts a burst with probability ``q = p / (L (1 - p) + p)`` per step (``L`` the
+    burst length), so that the stationary lost fraction ``q L / (q L + 1 - q)`` is ``p``
+    (``p = 1``: never observed; ``L = 1``: independent losses of probability ``p``). Noise is
+    drawn every step for every agent, so the stream of numbers does not depend on the
+    dropouts."""
 
     def __init__(self, n: int, noise_std: float, dropout_prob: float, dropout_burst: int):
         self.n = n
         self.noise_std = noise_std
         self.dropout_prob = dropout_prob
-        self.dropout_burst = dropout_burst
+        self.dropout_burst = int(dropout_burst)
+        p, L = float(dropout_prob), self.dropout_burst
+        #: probability per step that an observed agent starts a burst
+        self.start_prob = p / (L * (1.0 - p) + p) if p > 0 else 0.0
         self.rng: np.random.Generator | None = None
         self.left = np.zeros(n, dtype=np.int64)
 
@@ -171,7 +186,7 @@ class Sensor:
     def measure(self, positions: np.ndarray) -> np.ndarray:
         """``(n, 2)`` measurements of the true ``positions`` ``(n, 2)``."""
         noise = self.rng.normal(0.0, 1.0, size=(self.n, 2)) * self.noise_std
-        start = self.rng.random(self.n) < self.dropout_prob
+        start = self.rng.random(self.n) < self.start_prob
         self.left = np.where((self.left == 0) & start, self.dropout_burst, self.left)
         out = np.asarray(positions, dtype=float) + noise
         out[self.left > 0] = np.nan
@@ -179,10 +194,19 @@ class Sensor:
         return out
 
 
-def check_sensor(scenario: str, noise_std, dropout_prob, dropout_burst) -> None:
+def check_sensor(scenario: str, noise_std, dropout_prob, dropout_burst) -> int:
+    """Check the sensor options; returns ``dropout_burst`` as an int (at most MAX_STEPS)."""
     check_number(f"{scenario}.noise_std", noise_std, lo=0.0)
     check_number(f"{scenario}.dropout_prob", dropout_prob, lo=0.0, hi=1.0)
-    check_number(f"{scenario}.dropout_burst", dropout_burst, lo=1, integer=True)
+    return check_size(f"{scenario}.dropout_burst", dropout_burst, MAX_STEPS, "steps")
+
+
+def check_episode_sizes(options, scenario: str) -> None:
+    """``max_steps`` and ``n_path`` of a frozen world options object, bounded (check_size)."""
+    for name, limit in (("max_steps", MAX_STEPS), ("n_path", MAX_PATH)):
+        lo = 2 if name == "n_path" else 1
+        v = check_size(f"{scenario}.{name}", getattr(options, name), limit, "memory", lo=lo)
+        object.__setattr__(options, name, v)
 
 
 class Latch:

@@ -50,6 +50,7 @@ from .common import (
     Sensor,
     build_options,
     check_command,
+    check_episode_sizes,
     check_range,
     check_sensor,
     gap_decision,
@@ -75,10 +76,10 @@ class CrossingOptions:
     """Options of :class:`CrossingWorld` (frozen; unknown names are errors)."""
 
     dt: float = _RPI.dt  #: step (s)
-    max_steps: int = 120  #: timeout (steps)
+    max_steps: int = 120  #: timeout (steps), at most 100,000
     noise_std: float = 0.05  #: std of the pedestrian's position noise (m)
-    dropout_prob: float = 0.0  #: probability per step that the pedestrian drops out
-    dropout_burst: int = 3  #: length of a dropout (steps)
+    dropout_prob: float = 0.0  #: fraction of the pedestrian's positions lost (on average)
+    dropout_burst: int = 3  #: length of a dropout (steps), at most 100,000
     robot_speed: float = _RPI.speed0[0]  #: robot's initial and desired speed (m/s)
     aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the pedestrian character
     desired_speed: tuple[float, float] = (0.8, 1.4)  #: range of its walking speed (m/s)
@@ -88,13 +89,14 @@ class CrossingOptions:
     radius: float = _RPI.radius  #: radius of both agents (m)
     goal_tolerance: float = 0.3  #: success: robot this close to its goal (m)
     off_road_margin: float = 2.0  #: off_road: robot this far outside the 3 m circle (m)
-    n_path: int = 40  #: points of each AgentTask path
+    n_path: int = 40  #: points of each AgentTask path (2 to 10,000)
 
     def __post_init__(self):
         p = "crossing"
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
-        check_number(f"{p}.max_steps", self.max_steps, lo=1, integer=True)
-        check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        check_episode_sizes(self, p)
+        burst = check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        object.__setattr__(self, "dropout_burst", burst)
         check_number(f"{p}.robot_speed", self.robot_speed, lo=0.0, hi=_RPI.vmax[0])
         for name, lo, hi in (
             ("aggressiveness", 0.0, 1.0),
@@ -109,7 +111,6 @@ class CrossingOptions:
         check_number(f"{p}.radius", self.radius, lo=0.0, lo_open=True)
         check_number(f"{p}.goal_tolerance", self.goal_tolerance, lo=0.0, lo_open=True)
         check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
-        check_number(f"{p}.n_path", self.n_path, lo=2, integer=True)
 
 
 class CrossingWorld:

@@ -75,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 from solvers.control.types import AgentTask, Observation
 from solvers.control.vehicle import VehicleModel
 
@@ -87,6 +87,7 @@ from .common import (
     Sensor,
     build_options,
     check_command,
+    check_episode_sizes,
     check_range,
     check_sensor,
     gap_decision,
@@ -116,8 +117,8 @@ class Intersection:
 
     name: str = "custom"  #: label
     lane_width: float = 3.5  #: w (m), every lane
-    lanes: int = 1  #: lanes per direction on the ego's road (ego in lane 0)
-    cross_lanes: int = 1  #: lanes per direction on the crossing road
+    lanes: int = 1  #: lanes per direction on the ego's road (ego in lane 0), 1 to 3
+    cross_lanes: int = 1  #: lanes per direction on the crossing road, 1 to 3
     angle: float = 90.0  #: left-turn angle (deg): 90 = perpendicular crossing
     turn_radius: float = 10.0  #: radius of the ego's turn arc (m)
     speed_limit: float = 12.0  #: straight lanes (m/s); the turn: min(this, sqrt(3 R))
@@ -127,8 +128,10 @@ class Intersection:
     def __post_init__(self):
         f = f"geometry[{self.name}]"
         check_number(f"{f}.lane_width", self.lane_width, lo=2.5, hi=5.0)
-        check_number(f"{f}.lanes", self.lanes, lo=1, hi=3, integer=True)
-        check_number(f"{f}.cross_lanes", self.cross_lanes, lo=1, hi=3, integer=True)
+        for name in ("lanes", "cross_lanes"):
+            object.__setattr__(
+                self, name, check_size(f"{f}.{name}", getattr(self, name), 3, "lanes")
+            )
         check_number(f"{f}.angle", self.angle, lo=45.0, hi=135.0)
         # the highway-env bicycle turns no tighter than (L/2) / sin(atan(tan(pi/4) / 2)) = 5.6 m
         check_number(f"{f}.turn_radius", self.turn_radius, lo=6.0, hi=50.0)
@@ -162,10 +165,10 @@ class LeftTurnOptions:
 
     geometry: str | Intersection = "g0"  #: a name of GEOMETRIES or an Intersection
     dt: float = 0.1  #: planning period = simulation step (s)
-    max_steps: int = 150  #: timeout (steps)
+    max_steps: int = 150  #: timeout (steps), at most 100,000
     noise_std: float = 0.3  #: std of the position noise on other agents (m)
-    dropout_prob: float = 0.0  #: probability per step that an observed agent drops out
-    dropout_burst: int = 3  #: length of a dropout (steps)
+    dropout_prob: float = 0.0  #: fraction of an observed agent's positions lost (on average)
+    dropout_burst: int = 3  #: length of a dropout (steps), at most 100,000
     ego_distance: tuple[float, float] = (12.0, 30.0)  #: ego centre to the conflict zone (m)
     ego_speed: tuple[float, float] = (3.0, 7.0)  #: initial ego speed (m/s)
     other_distance: tuple[float, float] = (20.0, 55.0)  #: oncoming centre to the zone (m)
@@ -173,15 +176,18 @@ class LeftTurnOptions:
     #: accelerates (IDM) to the desired speed: a constant-velocity prediction misses that
     other_speed: tuple[float, float] | None = None
     aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the oncoming character
-    desired_speed: tuple[float, float] = (0.7, 1.0)  #: range, fraction of the speed limit
+    #: range, fraction of the speed limit, within [0.05, 1] (IDM never drives above the limit)
+    desired_speed: tuple[float, float] = (0.7, 1.0)
     reaction: tuple[float, float] = (0.2, 1.0)  #: range of its reaction time (s)
-    character: Character | None = None  #: a fixed oncoming character (overrides the ranges)
+    #: a fixed oncoming character (overrides the ranges); its desired speed (m/s) at most the
+    #: geometry's speed limit
+    character: Character | None = None
     margin: tuple[float, float] = (2.0, -1.0)  #: accepted time margin (s) at g = 0 and g = 1
     radius: float = 1.75  #: circle radius of each vehicle for the planners (m), see below
     collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
     goal_distance: float = 15.0  #: success: driven this far along the exit lane (m)
     off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
-    n_path: int = 60  #: points of each AgentTask path
+    n_path: int = 60  #: points of each AgentTask path (2 to 10,000)
     patience: float = 1.0  #: s the oncoming driver waits for an ego standing before the zone
 
     def __post_init__(self):
@@ -195,14 +201,15 @@ class LeftTurnOptions:
         elif not isinstance(g, Intersection):
             raise SpecError(f"{p}.geometry", f"expected a name or an Intersection, got {g!r}")
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
-        check_number(f"{p}.max_steps", self.max_steps, lo=1, integer=True)
-        check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        check_episode_sizes(self, p)
+        burst = check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        object.__setattr__(self, "dropout_burst", burst)
         for name, lo, hi in (
             ("ego_distance", 0.0, None),
             ("ego_speed", 0.0, 30.0),
             ("other_distance", 0.0, None),
             ("aggressiveness", 0.0, 1.0),
-            ("desired_speed", 0.05, 1.5),
+            ("desired_speed", 0.05, 1.0),
             ("reaction", 0.0, 5.0),
             ("margin", -10.0, 10.0),
             ("other_speed", 0.0, 40.0),
@@ -213,6 +220,14 @@ class LeftTurnOptions:
             object.__setattr__(self, name, val)
         if self.character is not None and not isinstance(self.character, Character):
             raise SpecError(f"{p}.character", f"expected a Character, got {self.character!r}")
+        if self.character is not None:
+            limit = self.intersection.speed_limit
+            if self.character.desired_speed > limit:
+                raise SpecError(
+                    f"{p}.character.desired_speed",
+                    f"expected at most the speed limit of geometry {self.intersection.name!r}, "
+                    f"{limit:g} m/s (IDM never drives faster), got {self.character.desired_speed:g}",
+                )
         check_number(f"{p}.radius", self.radius, lo=0.0, lo_open=True)
         if self.collision not in ("rectangles", "circles"):
             raise SpecError(
@@ -220,7 +235,6 @@ class LeftTurnOptions:
             )
         check_number(f"{p}.goal_distance", self.goal_distance, lo=0.0)
         check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
-        check_number(f"{p}.n_path", self.n_path, lo=2, integer=True)
         check_number(f"{p}.patience", self.patience, lo=0.0)
 
     @property

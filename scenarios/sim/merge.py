@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 from solvers.control.types import AgentTask, Observation
 from solvers.control.vehicle import VehicleModel
 
@@ -49,6 +49,7 @@ from .common import (
     Sensor,
     build_options,
     check_command,
+    check_episode_sizes,
     check_range,
     check_sensor,
     seeds,
@@ -63,41 +64,45 @@ AMPLITUDE = 3.25  # m, half the lateral offset of the ramp's converging sine lan
 class MergeOptions:
     """Options of :class:`MergeWorld` (frozen; unknown names are errors)."""
 
-    lanes: int = 2  #: main lanes
+    lanes: int = 2  #: main lanes (1 to 4)
     lane_width: float = 4.0  #: w (m)
     speed_limit: float = 30.0  #: main road (m/s)
     ramp_length: float = 120.0  #: straight ramp (m)
     converge_length: float = 80.0  #: converging sine lane (m)
     merge_length: float = 80.0  #: acceleration lane (m)
-    traffic: int = 4  #: IDM/MOBIL vehicles on the main road
+    traffic: int = 4  #: IDM/MOBIL vehicles on the main road (0 to 20)
     dt: float = 0.1  #: planning period = simulation step (s)
-    max_steps: int = 200  #: timeout (steps)
+    max_steps: int = 200  #: timeout (steps), at most 100,000
     noise_std: float = 0.3  #: std of the position noise on other agents (m)
-    dropout_prob: float = 0.0  #: probability per step that an observed agent drops out
-    dropout_burst: int = 3  #: length of a dropout (steps)
+    dropout_prob: float = 0.0  #: fraction of an observed agent's positions lost (on average)
+    dropout_burst: int = 3  #: length of a dropout (steps), at most 100,000
     ego_start: tuple[float, float] = (40.0, 70.0)  #: ego's position on the ramp (m)
     ego_speed: tuple[float, float] = (18.0, 24.0)  #: initial ego speed (m/s)
     spread: float = 50.0  #: traffic arrival offsets U(-spread, spread) around the ego's (m)
     aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the drivers' characters
-    desired_speed: tuple[float, float] = (0.75, 0.95)  #: range, fraction of the limit
+    #: range, fraction of the speed limit (at most 1: IDM never drives above the limit)
+    desired_speed: tuple[float, float] = (0.75, 0.95)
     radius: float = 2.5  #: circle radius of each vehicle for the planners (m)
     collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
     goal_distance: float = 40.0  #: success: this far past the end of the merge lane (m)
     off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
-    n_path: int = 80  #: points of each AgentTask path
+    n_path: int = 80  #: points of each AgentTask path (2 to 10,000)
 
     def __post_init__(self):
         p = "merge"
-        check_number(f"{p}.lanes", self.lanes, lo=1, hi=4, integer=True)
+        object.__setattr__(self, "lanes", check_size(f"{p}.lanes", self.lanes, 4, "lanes"))
         check_number(f"{p}.lane_width", self.lane_width, lo=2.5, hi=5.0)
         check_number(f"{p}.speed_limit", self.speed_limit, lo=5.0, hi=40.0)
         check_number(f"{p}.ramp_length", self.ramp_length, lo=20.0)
         check_number(f"{p}.converge_length", self.converge_length, lo=20.0)
         check_number(f"{p}.merge_length", self.merge_length, lo=20.0)
-        check_number(f"{p}.traffic", self.traffic, lo=0, hi=20, integer=True)
+        object.__setattr__(
+            self, "traffic", check_size(f"{p}.traffic", self.traffic, 20, "agents", lo=0)
+        )
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
-        check_number(f"{p}.max_steps", self.max_steps, lo=1, integer=True)
-        check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        check_episode_sizes(self, p)
+        burst = check_sensor(p, self.noise_std, self.dropout_prob, self.dropout_burst)
+        object.__setattr__(self, "dropout_burst", burst)
         for name, lo, hi in (
             ("ego_start", 0.0, self.ramp_length),
             ("ego_speed", 0.0, 40.0),
@@ -113,7 +118,6 @@ class MergeOptions:
             )
         check_number(f"{p}.goal_distance", self.goal_distance, lo=0.0)
         check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
-        check_number(f"{p}.n_path", self.n_path, lo=2, integer=True)
 
 
 def build_network(o: MergeOptions):

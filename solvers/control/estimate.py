@@ -2,7 +2,12 @@
 
 Each agent other than the ego (:class:`~solvers.control.types.Observation`, ``others``) is
 measured as a noisy position ``z = (x, y) + N(0, meas_std^2 I)`` once per period ``dt``;
-a ``NaN`` row is a dropout (the filter only predicts). The motion model is one of
+a row with a ``NaN`` is a dropout (the filter only predicts). A measurement with an
+infinite coordinate, or farther than ``max_position`` (m, default ``1e6``) from the origin, is
+rejected as an outlier and handled like a dropout (the filter only predicts; it is counted in
+:attr:`UKFEstimator.rejected` and its ``valid`` entry is False); so is one whose update
+would leave the filter's state or covariance non-finite. The estimate is therefore never
+``NaN`` for a track that has started, whatever the measurements. The motion model is one of
 
 ``"ctrv"`` (default): state ``(x, y, v, theta, omega)``, constant turn rate and velocity::
 
@@ -39,13 +44,17 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 
 from .types import Estimate, Observation
 
-__all__ = ["UKFOptions", "UKFEstimator", "MOTION_MODELS"]
+__all__ = ["UKFOptions", "UKFEstimator", "MOTION_MODELS", "MAX_HISTORY", "MAX_INIT_POINTS"]
 
 MOTION_MODELS = ("ctrv", "unicycle")
+#: most past periods in ``Estimate.history`` (an (N-1, H+1, 4) array rebuilt every step)
+MAX_HISTORY = 1000
+#: most measurements of a track's constant-velocity start fit
+MAX_INIT_POINTS = 100
 
 
 @dataclass(frozen=True)
@@ -56,12 +65,13 @@ class UKFOptions:
     meas_std: float = 0.2  #: position measurement noise std (m), per axis
     accel_std: float = 2.0  #: process noise: longitudinal acceleration std (m/s^2)
     turn_std: float = 0.5  #: process noise: yaw acceleration (ctrv, rad/s^2) or turn rate std
-    history: int = 18  #: H, past periods in Estimate.history (plus the current one)
-    init_points: int = 3  #: measurements fitted before the filter starts (>= 2)
+    history: int = 18  #: H, past periods in Estimate.history (plus the current one), <= 1000
+    init_points: int = 3  #: measurements fitted before the filter starts (2 to 100)
     init_speed_std: float = 10.0  #: speed std (m/s) of a track with a single measurement
     init_turn_std: float = 0.5  #: ctrv: std of the initial turn rate (rad/s)
     alpha: float = 1.0  #: Merwe sigma-point spread (1 with kappa 0: no negative weights)
     beta: float = 2.0  #: Merwe prior knowledge parameter (2 for Gaussians)
+    max_position: float = 1e6  #: m, measurements farther from the origin are outliers
 
     def __post_init__(self):
         if self.model not in MOTION_MODELS:
@@ -69,12 +79,19 @@ class UKFOptions:
         check_number("ukf.meas_std", self.meas_std, lo=0, lo_open=True)
         check_number("ukf.accel_std", self.accel_std, lo=0, lo_open=True)
         check_number("ukf.turn_std", self.turn_std, lo=0, lo_open=True)
-        check_number("ukf.history", self.history, lo=0, integer=True)
-        check_number("ukf.init_points", self.init_points, lo=2, integer=True)
+        object.__setattr__(
+            self, "history", check_size("ukf.history", self.history, MAX_HISTORY, "memory", lo=0)
+        )
+        object.__setattr__(
+            self,
+            "init_points",
+            check_size("ukf.init_points", self.init_points, MAX_INIT_POINTS, "fit size", lo=2),
+        )
         check_number("ukf.init_speed_std", self.init_speed_std, lo=0, lo_open=True)
         check_number("ukf.init_turn_std", self.init_turn_std, lo=0, lo_open=True)
         check_number("ukf.alpha", self.alpha, lo=0, lo_open=True, hi=1)
         check_number("ukf.beta", self.beta, lo=0)
+        check_number("ukf.max_position", self.max_position, lo=0, lo_open=True, hi=1e12)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> UKFOptions:
@@ -146,7 +163,8 @@ class UKFEstimator:
 
     ``UKFEstimator(options)`` or ``UKFEstimator(meas_std=0.3, ...)``; see the module
     docstring for the model. :meth:`reset` starts tracks at the first observation,
-    :meth:`update` advances one period.
+    :meth:`update` advances one period. ``rejected`` counts the measurements rejected as
+    outliers since :meth:`reset` (module docstring).
     """
 
     def __init__(self, options: UKFOptions | dict | None = None, **kw):
@@ -246,6 +264,7 @@ class UKFEstimator:
         self._hist = np.full((n, H1, 4), np.nan)
         self._valid = np.zeros((n, H1), dtype=bool)
         self._n = n
+        self.rejected = 0
         return self._incorporate(z)
 
     def update(self, obs: Observation) -> Estimate:
@@ -277,11 +296,27 @@ class UKFEstimator:
 
     def _incorporate(self, z: np.ndarray) -> Estimate:
         o, t = self.options, self._k * self.dt
-        seen = np.all(np.isfinite(z), axis=1)
+        with np.errstate(all="ignore"):
+            seen = np.all(np.isfinite(z), axis=1)
+            near = np.hypot(z[:, 0], z[:, 1]) <= o.max_position
+            outlier = ~np.any(np.isnan(z), axis=1) & ~(seen & near)  # NaN: a dropout
+        self.rejected += int(outlier.sum())
+        seen &= ~outlier
         for i in np.flatnonzero(seen):
             f = self._filters[i]
             if f is not None:
-                _guarded(f.update, f, z[i])
+                x, P = f.x.copy(), f.P.copy()
+                try:
+                    with np.errstate(all="ignore"):
+                        _guarded(f.update, f, z[i])
+                    good = bool(np.all(np.isfinite(f.x)) and np.all(np.isfinite(f.P)))
+                except (ValueError, np.linalg.LinAlgError):
+                    good = False
+                if not good:  # an update that breaks the filter is an outlier too
+                    f.x, f.P = x, P
+                    self.rejected += 1
+                    seen[i] = False
+                    continue
                 f.x[3] = _wrap(f.x[3])
                 self._x[i], self._P[i] = f.x, f.P
                 continue

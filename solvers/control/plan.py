@@ -30,8 +30,12 @@ cached: a new episode or a new step only changes parameters (initial states, the
 windows, the speeds). Paths enter as a window of ``path_points`` vertices resampled along
 each agent's lane from just behind it to beyond what it can reach within the horizon.
 
-Failures (a non-finite input, a solver that fails or returns non-finite values, an
-exception inside a solve) give ``Plan(ok=False, message=...)``; :meth:`plan` never raises.
+Failures (an observation or estimate that is missing or of the wrong kind or shape, a
+non-finite input, a solver that fails or returns non-finite values, an exception inside a
+solve, :meth:`plan` before :meth:`reset`) give ``Plan(ok=False, message=...)`` (NaN states of
+the horizon's length, ``t0`` the observation's time or NaN when it has none); :meth:`plan`
+never raises. Option errors are :class:`~epo_casadi.errors.SpecError` when the options are
+made, sizes bounded (:data:`MAX_HORIZON` and the limits in :class:`PlannerOptions`).
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from dataclasses import dataclass, fields
 import casadi as ca
 import numpy as np
 
-from epo_casadi.errors import EpoError, SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size, short_repr
 from epo_casadi.game import AgentSpec, GameSpec, PotentialGame
 
 from ..lm import LMOptions, solve_lm
@@ -56,7 +60,15 @@ __all__ = [
     "build_game",
     "path_window",
     "failed_plan",
+    "MAX_HORIZON",
 ]
+
+#: most planning steps (a game of N agents has 2 N K unknowns and is rebuilt per K)
+MAX_HORIZON = 1000
+#: most lane-window vertices per agent (parameters of the game)
+MAX_PATH_POINTS = 1000
+#: most LM steps per period / of a cold start, and IPOPT iterations per plan
+MAX_STEPS = 100_000
 
 #: (feature type, option holding its weight), the order of the residual blocks
 _OWN = (
@@ -79,8 +91,9 @@ class PlannerOptions:
     (``epo simulate`` measures it: the real-time factor in the summary).
     """
 
-    horizon: int = 30  #: planning steps K (of the world's dt)
-    path_points: int = 10  #: vertices of each agent's lane window (a fixed parameter size)
+    horizon: int = 30  #: planning steps K (of the world's dt), 2 to MAX_HORIZON (1000)
+    path_points: int = 10  #: vertices of each agent's lane window (a fixed parameter size),
+    #: 2 to 1000
     path_behind: float = 3.0  #: metres of lane kept behind an agent's projection
     path_ahead: float = 10.0  #: metres of lane beyond max(v, speed) * horizon
     w_path: float = 5.0  #: weight of the distance to the lane centre line
@@ -93,25 +106,33 @@ class PlannerOptions:
     w_reverse: float = 5.0  #: weight of max(0, -v) (no reversing)
     w_collision: float = 50.0  #: weight of the collision penetration
     collision_margin: float = 1.0  #: metres added to r_i + r_j in the collision feature
-    steps: int = 10  #: LM steps per period (warm-started)
+    steps: int = 10  #: LM steps per period (warm-started), at most 100,000
     start_acceleration: float = 2.0  #: oracle: |a| of the "ego first" / "others first" starts
     switch_margin: float = 0.02  #: oracle: leave the warm-started mode if another is this
     #: fraction of (1 + E) lower
     temperature: float = 1.0  #: oracle: mode weights exp(-(E - E_min) / temperature)
-    first_steps: int = 100  #: LM steps of a cold start (first period, after a failure)
+    first_steps: int = 100  #: LM steps of a cold start (first period, after a failure), at
+    #: most 100,000
     gtol: float = 1e-6  #: LM gradient tolerance (stops early once met)
     backend: str = "fused"  #: LM Gauss-Newton backend: "fused" (one problem at a time is its
     #: strength; equal to "structured" to 1e-12), "structured" or "dense"
     compiled: bool | None = None  #: the backend as generated C; None: when a C compiler is
     #: found (solvers.codegen.find_compiler), else interpreted
-    ipopt_max_iter: int = 100  #: IPOPT iterations of the CV planner's best response
+    ipopt_max_iter: int = 100  #: IPOPT iterations of the CV planner's best response (at most
+    #: 100,000)
     ipopt_tol: float = 1e-8  #: IPOPT tolerance of the CV planner
 
     def __post_init__(self):
-        check_number("planner.horizon", self.horizon, lo=2, integer=True)
-        check_number("planner.path_points", self.path_points, lo=2, integer=True)
-        for name in ("steps", "first_steps", "ipopt_max_iter"):
-            check_number(f"planner.{name}", getattr(self, name), lo=1, integer=True)
+        sizes = (
+            ("horizon", MAX_HORIZON, "game size", 2),
+            ("path_points", MAX_PATH_POINTS, "game size", 2),
+            ("steps", MAX_STEPS, "planning time", 1),
+            ("first_steps", MAX_STEPS, "planning time", 1),
+            ("ipopt_max_iter", MAX_STEPS, "planning time", 1),
+        )
+        for name, limit, what, lo in sizes:
+            v = check_size(f"planner.{name}", getattr(self, name), limit, what, lo=lo)
+            object.__setattr__(self, name, v)
         for f in fields(self):
             if f.name.startswith("w_") or f.name in ("path_behind", "path_ahead"):
                 check_number(f"planner.{f.name}", getattr(self, f.name), lo=0)
@@ -331,12 +352,24 @@ class _GamePlanner:
         )
 
     def plan(self, obs: Observation, est: Estimate) -> Plan:
-        """The ego's plan for this period; never raises (a failure is ``ok=False``)."""
+        """The ego's plan for this period; never raises (a failure is ``ok=False``, see the
+        module docstring: also for a missing or malformed ``obs`` or ``est``)."""
         K = self.options.horizon
+        t = getattr(obs, "t", math.nan)
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            t = math.nan
         if self.game is None:
-            return failed_plan(obs.t, self.dt, K, f"{self.name}: plan() before reset()")
+            return failed_plan(t, self.dt, K, f"{self.name}: plan() before reset()")
         t0 = time.perf_counter()
         try:
+            if not math.isfinite(t):
+                raise _PlanFailure(
+                    f"expected an Observation with a finite time t, got {short_repr(obs)}"
+                )
+            if not isinstance(getattr(est, "states", None), np.ndarray | list | tuple):
+                raise _PlanFailure(f"expected an Estimate, got {type(est).__name__}")
             ego = np.asarray(obs.ego, dtype=float).reshape(4)
             others = np.asarray(est.states, dtype=float).reshape(self.game.N - 1, 4)
             if not np.all(np.isfinite(ego)):
@@ -354,10 +387,10 @@ class _GamePlanner:
                 plan.info["absent"] = self._absent.tolist()
         except _PlanFailure as e:
             self._u = None
-            plan = failed_plan(obs.t, self.dt, K, f"{self.name}: {e}")
-        except (EpoError, ArithmeticError, RuntimeError, ValueError, np.linalg.LinAlgError) as e:
+            plan = failed_plan(t, self.dt, K, f"{self.name}: {e}")
+        except Exception as e:  # noqa: BLE001 - plan() never raises (module docstring)
             self._u = None
-            plan = failed_plan(obs.t, self.dt, K, f"{self.name}: {type(e).__name__}: {e}")
+            plan = failed_plan(t, self.dt, K, f"{self.name}: {type(e).__name__}: {e}")
         plan.info["solve_ms"] = (time.perf_counter() - t0) * 1e3
         return plan
 

@@ -15,7 +15,8 @@ conditional-integration anti-windup, and the output clipped to the command box a
     s.t. x_{k+1} = A_k x_k + B_k u_k + c_k,  u_min <= u_k <= u_max,
          |u_k - u_{k-1}| <= rate * dt  (u_{-1}: the command applied last)
 
-is solved as a sparse QP with OSQP. ``Q_k`` weights the along-track and cross-track position
+is solved as a sparse QP with OSQP (QP numbers that are not finite or beyond ``1e15`` are
+never handed to it: the call falls back). ``Q_k`` weights the along-track and cross-track position
 errors in the reference's frame (so its values change with the reference heading), the speed
 and the heading. The QP is set up once per :meth:`reset` with a fixed sparsity pattern;
 every step only its numbers change (``update(q, l, u, Px, Ax)``) and the previous solution,
@@ -29,10 +30,13 @@ extrapolated back one period). A reference shorter than the horizon holds its la
 :meth:`VehicleModel.from_unicycle` and are clipped to the box.
 
 Fallback: a plan with ``ok=False``, the wrong shapes or non-finite values, a non-finite ego
-state, or a QP that OSQP does not solve yields a braking command
+state or time, a PID command that comes out non-finite, or a QP that OSQP does not solve
+yields a braking command
 (``Command(fallback=True, info={"reason": ...})``): the acceleration that stops the vehicle
 within a step, clipped to ``[a_min, a_max]`` (the jerk limit is waived: safety first), the
-steering held. Trackers count them in ``fallbacks``.
+steering held. Trackers count them in ``fallbacks``. A fallback leaves the tracker's state
+(integrators, previous errors, warm start) as it was before the call, so one bad input never
+poisons later calls. :meth:`control` before :meth:`reset` raises :class:`SpecError`.
 """
 
 from __future__ import annotations
@@ -46,12 +50,19 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from epo_casadi.errors import SpecError, check_bool, check_number
+from epo_casadi.errors import SpecError, check_bool, check_number, check_size
 
 from .types import Command, Plan
 from .vehicle import VehicleModel
 
-__all__ = ["PIDOptions", "PIDTracker", "MPCOptions", "MPCTracker", "reference"]
+__all__ = ["PIDOptions", "PIDTracker", "MPCOptions", "MPCTracker", "reference", "MAX_HORIZON"]
+
+#: most prediction steps of :class:`MPCTracker` (its QP has 6 x horizon unknowns)
+MAX_HORIZON = 1000
+#: most OSQP iterations per step of :class:`MPCTracker`
+MAX_ITER = 1_000_000
+#: largest magnitude of a QP number handed to OSQP (larger: the ego or plan is out of range)
+_QP_LIMIT = 1e15
 
 _log = logging.getLogger(__name__)
 
@@ -91,6 +102,18 @@ def _plan_problem(plan: Plan) -> str | None:
     return None
 
 
+def _input_problem(ego: np.ndarray, plan: Plan, t) -> str | None:
+    """Why ``control(ego, plan, t)`` cannot track, or None."""
+    reason = _plan_problem(plan)
+    if reason is None and not (ego.shape == (4,) and np.all(np.isfinite(ego))):
+        reason = f"ego state: expected 4 finite numbers, got {ego!r}"
+    if reason is None:
+        ok = isinstance(t, (int, float, np.integer, np.floating)) and not isinstance(t, bool)
+        if not (ok and math.isfinite(float(t))):
+            reason = f"time t: expected a finite number, got {t!r}"
+    return reason
+
+
 def reference(plan: Plan, t: float, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     """The plan sampled for a tracker at time ``t``: states ``(n + 1, 4)`` at ``t + dt k``,
     ``k = 0..n``, and nominal unicycle controls ``(n, 2)`` on ``[t + dt k, t + dt (k+1))``
@@ -113,8 +136,14 @@ def reference(plan: Plan, t: float, dt: float, n: int) -> tuple[np.ndarray, np.n
 class _TrackerBase:
     """Shared state: vehicle, period, last command, fallback counter."""
 
-    vehicle: VehicleModel
+    vehicle: VehicleModel | None = None
     dt: float
+
+    def _require_reset(self) -> None:
+        if self.vehicle is None:
+            raise SpecError(
+                "tracker", f"{type(self).__name__}.control() called before reset(world)"
+            )
 
     def _reset_common(self, world) -> None:
         vehicle, dt = getattr(world, "vehicle", None), getattr(world, "dt", None)
@@ -179,31 +208,35 @@ class PIDTracker(_TrackerBase):
         self._ev_prev = self._eh_prev = None
 
     def control(self, ego: np.ndarray, plan: Plan, t: float) -> Command:
-        """The command at time ``t`` for the ego state ``ego`` ``(4,)`` following ``plan``."""
+        """The command at time ``t`` for the ego state ``ego`` ``(4,)`` following ``plan``.
+
+        Bad input (see the module docstring) brakes and leaves the loops' state unchanged."""
+        self._require_reset()
         self.steps += 1
         ego = np.asarray(ego, dtype=np.float64)
-        reason = _plan_problem(plan)
-        if reason is None and not (ego.shape == (4,) and np.all(np.isfinite(ego))):
-            reason = f"ego state: expected 4 finite numbers, got {ego!r}"
+        reason = _input_problem(ego, plan, t)
         if reason is not None:
             return self._brake(ego, reason)
         o, dt, veh = self.options, self.dt, self.vehicle
-        R, ubar = reference(plan, t, dt, 1)
-        r = R[0]
-        c, s = math.cos(r[3]), math.sin(r[3])
-        dx, dy = ego[0] - r[0], ego[1] - r[1]
-        e_lon = -(c * dx + s * dy)  # > 0: the ego lags behind the reference point
-        e_lat = -s * dx + c * dy  # > 0: the ego is left of the reference
-        e_v = r[2] + o.k_lon * e_lon - ego[2]
-        e_h = float(_wrap(r[3] - ego[3])) - math.atan(o.k_ct * e_lat / (abs(ego[2]) + o.v_soft))
-        dv = 0.0 if self._ev_prev is None else (e_v - self._ev_prev) / dt
-        dh = 0.0 if self._eh_prev is None else float(_wrap(e_h - self._eh_prev)) / dt
-        ff = ubar[0] if o.feedforward else np.zeros(2)
-        iv, ih = self._iv + e_v * dt, self._ih + e_h * dt
-        a = ff[0] + o.kp_v * e_v + o.ki_v * iv + o.kd_v * dv
-        w = ff[1] + o.kp_h * e_h + o.ki_h * ih + o.kd_h * dh
-        raw = veh.from_unicycle(ego, np.array([a, w]))
-        u = veh.clip(raw, self.u_prev, dt)
+        with np.errstate(all="ignore"):
+            R, ubar = reference(plan, float(t), dt, 1)
+            r = R[0]
+            c, s = math.cos(r[3]), math.sin(r[3])
+            dx, dy = ego[0] - r[0], ego[1] - r[1]
+            e_lon = -(c * dx + s * dy)  # > 0: the ego lags behind the reference point
+            e_lat = -s * dx + c * dy  # > 0: the ego is left of the reference
+            e_v = r[2] + o.k_lon * e_lon - ego[2]
+            e_h = float(_wrap(r[3] - ego[3])) - math.atan(o.k_ct * e_lat / (abs(ego[2]) + o.v_soft))
+            dv = 0.0 if self._ev_prev is None else (e_v - self._ev_prev) / dt
+            dh = 0.0 if self._eh_prev is None else float(_wrap(e_h - self._eh_prev)) / dt
+            ff = ubar[0] if o.feedforward else np.zeros(2)
+            iv, ih = self._iv + e_v * dt, self._ih + e_h * dt
+            a = ff[0] + o.kp_v * e_v + o.ki_v * iv + o.kd_v * dv
+            w = ff[1] + o.kp_h * e_h + o.ki_h * ih + o.kd_h * dh
+            raw = veh.from_unicycle(ego, np.array([a, w]))
+            u = veh.clip(raw, self.u_prev, dt)
+        if not np.all(np.isfinite([*raw, *u, e_v, e_h, iv, ih, e_lat, e_lon])):
+            return self._brake(ego, "the PID command is not finite (the reference is out of reach)")
         # anti-windup: keep an integrator only while its loop is not pushed into saturation
         if not (u[0] != raw[0] and np.sign(raw[0] - u[0]) == np.sign(e_v)):
             self._iv = iv
@@ -219,7 +252,7 @@ class PIDTracker(_TrackerBase):
 class MPCOptions:
     """Horizon, weights and solver settings of :class:`MPCTracker` (unknown keys: error)."""
 
-    horizon: int = 20  #: prediction steps (of the world's dt)
+    horizon: int = 20  #: prediction steps (of the world's dt), at most MAX_HORIZON (1000)
     q_lon: float = 1.0  #: along-track position error weight (1/m^2)
     q_lat: float = 10.0  #: cross-track position error weight (1/m^2)
     q_v: float = 1.0  #: speed error weight (s^2/m^2)
@@ -231,12 +264,14 @@ class MPCOptions:
     s_steer: float = 10.0  #: steering (or turn rate) change between steps
     eps_abs: float = 1e-5  #: OSQP absolute tolerance
     eps_rel: float = 1e-5  #: OSQP relative tolerance
-    max_iter: int = 4000  #: OSQP iteration limit
+    max_iter: int = 4000  #: OSQP iteration limit, at most 1,000,000
     polish: bool = False  #: OSQP solution polishing
     warm_start: bool = True  #: warm-start from the shifted previous solution
 
     def __post_init__(self):
-        check_number("mpc.horizon", self.horizon, lo=1, integer=True)
+        object.__setattr__(
+            self, "horizon", check_size("mpc.horizon", self.horizon, MAX_HORIZON, "QP size")
+        )
         for name in ("q_lon", "q_lat", "q_v", "q_theta", "r_a", "r_steer", "s_a", "s_steer"):
             check_number(f"mpc.{name}", getattr(self, name), lo=0)
         if self.r_a + self.s_a <= 0 or self.r_steer + self.s_steer <= 0:
@@ -244,7 +279,9 @@ class MPCOptions:
         check_number("mpc.terminal", self.terminal, lo=0)
         check_number("mpc.eps_abs", self.eps_abs, lo=0, lo_open=True)
         check_number("mpc.eps_rel", self.eps_rel, lo=0)
-        check_number("mpc.max_iter", self.max_iter, lo=1, integer=True)
+        object.__setattr__(
+            self, "max_iter", check_size("mpc.max_iter", self.max_iter, MAX_ITER, "solve time")
+        )
         check_bool("mpc.polish", self.polish)
         check_bool("mpc.warm_start", self.warm_start)
 
@@ -261,8 +298,9 @@ def _csc(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, shape) -> tuple:
 class MPCTracker(_TrackerBase):
     """:class:`~solvers.control.types.Tracker`: LTV MPC with OSQP (module docstring).
 
-    Attributes after :meth:`control`: ``fallbacks``, ``steps``, ``setups`` (QP set-ups, one
-    per reset), ``solver`` (the ``osqp.OSQP`` object), ``last`` (the last QP's numbers:
+    Attributes after :meth:`control`: ``fallbacks``, ``steps``, ``setups`` (QP set-ups: one
+    per reset, and a fresh one before the call after a QP that OSQP did not solve, so that
+    numbers a failed update left behind never reach a later solve), ``solver`` (the ``osqp.OSQP`` object), ``last`` (the last QP's numbers:
     ``u`` ``(N, 2)``, ``x`` ``(N, 4)``, ``ref``, ``ubar``, ``A``, ``B``, ``c``, ``Q``).
     """
 
@@ -321,6 +359,12 @@ class MPCTracker(_TrackerBase):
         Pv = self._P_values(np.zeros(N))
         self._A, self._A_perm = _csc(self._A_rows, A_cols, Av, (8 * N, 6 * N))
         self._P, self._P_perm = _csc(P_rows, P_cols, Pv, (6 * N, 6 * N))
+        self._setup()
+        self.last: dict = {}
+
+    def _setup(self) -> None:
+        """A new OSQP object on the structure of :meth:`reset` (numbers at rest)."""
+        o, N = self.options, self.options.horizon
         lo, hi = self._bounds(np.zeros(N * 4), np.zeros(2))
         self.solver = osqp.OSQP()
         self.solver.setup(
@@ -338,7 +382,7 @@ class MPCTracker(_TrackerBase):
         )
         self.setups += 1
         self._z = None
-        self.last: dict = {}
+        self._stale = False
 
     # ------------------------------------------------------------------ numbers
     def _linearize(self, Xbar: np.ndarray, Ubar: np.ndarray):
@@ -377,40 +421,47 @@ class MPCTracker(_TrackerBase):
     def control(self, ego: np.ndarray, plan: Plan, t: float) -> Command:
         """Solve the QP at time ``t`` from ``ego`` ``(4,)`` along ``plan``; its first command."""
         if self.solver is None:
-            raise SpecError("tracker", "control() called before reset()")
+            raise SpecError("tracker", "MPCTracker.control() called before reset(world)")
         self.steps += 1
         ego = np.asarray(ego, dtype=np.float64)
-        reason = _plan_problem(plan)
-        if reason is None and not (ego.shape == (4,) and np.all(np.isfinite(ego))):
-            reason = f"ego state: expected 4 finite numbers, got {ego!r}"
+        reason = _input_problem(ego, plan, t)
         if reason is not None:
             return self._brake(ego, reason)
         o, N, veh = self.options, self.options.horizon, self.vehicle
         t_start = time.perf_counter()
-        R, ubar_uni = reference(plan, t, self.dt, N)
-        R[:, 3] += 2 * np.pi * np.round((ego[3] - R[0, 3]) / (2 * np.pi))
-        ref = R[1:]
-        Xbar = np.concatenate([ego[None], ref[:-1]])  # linearization points x_0..x_{N-1}
-        ubar = veh.clip(veh.from_unicycle(Xbar, ubar_uni))
-        xn, A, B = self._linearize(Xbar, ubar)
-        c = xn - np.einsum("kij,kj->ki", A, Xbar) - np.einsum("kij,kj->ki", B, ubar)
-        rhs = c.copy()
-        rhs[0] += A[0] @ ego  # x_1 = A_0 x_0 + B_0 u_0 + c_0 with x_0 the ego state
-        u_prev = self.u_prev
-        lo, hi = self._bounds(rhs.ravel(), u_prev)
-        Pv = self._P_values(ref[:, 3])
-        w = self._stage_w[:, None]
-        Qd = np.stack(
-            [Pv[0 : 5 * N : 5], Pv[1 : 5 * N : 5], Pv[2 : 5 * N : 5]], axis=1
-        )  # q00, q01, q11
-        qx = np.empty((N, 4))
-        qx[:, 0] = -(Qd[:, 0] * ref[:, 0] + Qd[:, 1] * ref[:, 1])
-        qx[:, 1] = -(Qd[:, 1] * ref[:, 0] + Qd[:, 2] * ref[:, 1])
-        qx[:, 2:] = -w * np.array([o.q_v, o.q_theta]) * ref[:, 2:]
-        qu = -self._Rw * ubar
-        qu[0] -= self._Sw * u_prev
-        q = np.concatenate([qu.ravel(), qx.ravel()])
-        Av = self._A_values(A, B)
+        with np.errstate(all="ignore"):
+            R, ubar_uni = reference(plan, float(t), self.dt, N)
+            R[:, 3] += 2 * np.pi * np.round((ego[3] - R[0, 3]) / (2 * np.pi))
+            ref = R[1:]
+            Xbar = np.concatenate([ego[None], ref[:-1]])  # linearization points x_0..x_{N-1}
+            ubar = veh.clip(veh.from_unicycle(Xbar, ubar_uni))
+            xn, A, B = self._linearize(Xbar, ubar)
+            c = xn - np.einsum("kij,kj->ki", A, Xbar) - np.einsum("kij,kj->ki", B, ubar)
+            rhs = c.copy()
+            rhs[0] += A[0] @ ego  # x_1 = A_0 x_0 + B_0 u_0 + c_0 with x_0 the ego state
+            u_prev = self.u_prev
+            lo, hi = self._bounds(rhs.ravel(), u_prev)
+            Pv = self._P_values(ref[:, 3])
+            w = self._stage_w[:, None]
+            Qd = np.stack(
+                [Pv[0 : 5 * N : 5], Pv[1 : 5 * N : 5], Pv[2 : 5 * N : 5]], axis=1
+            )  # q00, q01, q11
+            qx = np.empty((N, 4))
+            qx[:, 0] = -(Qd[:, 0] * ref[:, 0] + Qd[:, 1] * ref[:, 1])
+            qx[:, 1] = -(Qd[:, 1] * ref[:, 0] + Qd[:, 2] * ref[:, 1])
+            qx[:, 2:] = -w * np.array([o.q_v, o.q_theta]) * ref[:, 2:]
+            qu = -self._Rw * ubar
+            qu[0] -= self._Sw * u_prev
+            q = np.concatenate([qu.ravel(), qx.ravel()])
+            Av = self._A_values(A, B)
+        if not all(np.all(np.abs(v) <= _QP_LIMIT) for v in (q, lo, hi, Pv, Av)):
+            # OSQP never sees them: a later, valid call solves as before
+            self._z = None
+            return self._brake(
+                ego, "QP numbers not finite or beyond 1e15 (ego or plan out of range)"
+            )
+        if self._stale:  # the last QP was not solved: OSQP may hold broken numbers
+            self._setup()
         t_update = time.perf_counter()
         self.solver.update(q=q, l=lo, u=hi, Px=Pv[self._P_perm], Ax=Av[self._A_perm])
         if o.warm_start and self._z is not None:
@@ -448,6 +499,7 @@ class MPCTracker(_TrackerBase):
         )
         if not solved or res.x is None or not np.all(np.isfinite(res.x)):
             self._z = None
+            self._stale = True
             return self._brake(ego, f"QP not solved: {status}")
         self._z = res.x.copy()
         U = res.x[: 2 * N].reshape(N, 2)

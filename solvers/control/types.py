@@ -132,6 +132,11 @@ class Estimator(Protocol):
 
 @runtime_checkable
 class Planner(Protocol):
+    """``reset(world)`` before an episode (an unusable world raises
+    :class:`~epo_casadi.errors.SpecError`); ``plan(obs, est)`` once per period. ``plan``
+    never raises: any failure, including a missing or malformed ``obs`` or ``est``, is a
+    ``Plan(ok=False, message=...)`` (:func:`solvers.control.plan.failed_plan`)."""
+
     def reset(self, world: World) -> None: ...
 
     def plan(self, obs: Observation, est: Estimate) -> Plan: ...
@@ -139,6 +144,11 @@ class Planner(Protocol):
 
 @runtime_checkable
 class Tracker(Protocol):
+    """``reset(world)`` before an episode; ``control(ego, plan, t)`` once per period. Bad
+    input (a failed or malformed plan, a non-finite ego state or time) gives a braking
+    ``Command(fallback=True)`` and leaves the tracker's state unchanged; ``control`` before
+    ``reset`` raises :class:`~epo_casadi.errors.SpecError`."""
+
     def reset(self, world: World) -> None: ...
 
     def control(self, ego: np.ndarray, plan: Plan, t: float) -> Command: ...
