@@ -29,7 +29,10 @@ Every problem in a file raises :class:`epo_casadi.SpecError` whose ``field`` is 
 path of the offending entry (``agents[1].radius``, ``agents[0].features[2].upper``,
 ``solver.lm.steps``) and whose message says what was expected. Unknown keys are
 errors, never ignored. Numbers must be finite (YAML ``.nan``/``.inf`` are rejected;
-leave a bound out instead of writing an infinite one).
+leave a bound out instead of writing an infinite one). YAML anchors, aliases and merge
+keys (``<<: *base``; the mapping's own keys override the merged ones) are read; data
+nested deeper than :data:`MAX_DEPTH` or expanding to more than :data:`MAX_VALUES` values
+is refused.
 
 Public API: :func:`load_game` (path), :func:`parse_game` (an already parsed mapping),
 :class:`GameFile`, :func:`dump_game` / :func:`save_game` (the inverse) and
@@ -56,6 +59,8 @@ from epo_casadi.features import Path as PathFeature
 from epo_casadi.game import MAX_HORIZON, AgentSpec, GameSpec, PotentialGame
 from epo_casadi.registry import DYNAMICS, FEATURES, freeze
 from epo_casadi.registry import PAIR_FEATURES as _PAIR_REGISTRY
+from epo_casadi.registry import allow_imports as _allow_imports
+from scenarios.files import check_input_file
 
 __all__ = [
     "GameFile",
@@ -77,6 +82,10 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 #: counting every repetition of a YAML alias: a few aliases can otherwise stand for
 #: billions of values and hang the loader.
 MAX_VALUES = 1_000_000
+#: Deepest nesting of lists and mappings a game file may have (a game file needs about 7:
+#: ``solver.ipopt.control_bounds.<agent>[0][1]``); deeper data is refused in one line, never
+#: by a RecursionError of a reader.
+MAX_DEPTH = 64
 _TOP_KEYS = ("horizon", "dt", "agents", "pair_features", "solver")
 _AGENT_KEYS = (
     "name",
@@ -146,14 +155,19 @@ class GameFile:
 # --------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------
-def load_game(path: str | Path) -> GameFile:
+def load_game(path: str | Path, allow_imports: Sequence[str] = ()) -> GameFile:
     """Read a game file (``.yaml``/``.yml`` or ``.json``); see the module docstring.
 
-    Raises :class:`SpecError` for every problem in the file (syntax included) and
-    ``FileNotFoundError`` when there is no such file.
+    ``allow_imports``: modules whose ``module:Class`` names the file may import (with
+    their submodules), besides those of ``$EPO_ALLOW_IMPORT`` and open
+    :func:`epo_casadi.registry.allow_imports` blocks; any other is refused before it is
+    imported. Raises :class:`SpecError` for every problem in the file (syntax included)
+    and ``FileNotFoundError`` when there is no such file.
     """
     path = Path(path)
     where = path.name
+    if path.exists():  # a pipe or a device would block or be read forever
+        check_input_file(path, where)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
@@ -171,17 +185,31 @@ def load_game(path: str | Path) -> GameFile:
             raise SpecError(
                 where, f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}"
             ) from None
+        except RecursionError:  # the decoder recurses once per level of nesting
+            raise SpecError(
+                where, f"invalid JSON: nested more than {MAX_DEPTH} levels deep"
+            ) from None
     else:
         data = _load_yaml(text, where)
     if data is None:
         raise SpecError(
             where, "the file holds no data; expected a mapping with 'horizon', 'dt' and 'agents'"
         )
-    return parse_game(data, source=path)
+    return parse_game(data, source=path, allow_imports=allow_imports)
 
 
-def parse_game(data: Any, source: str | Path | None = None) -> GameFile:
-    """Validate an already parsed game mapping (the schema of :func:`load_game`)."""
+def parse_game(
+    data: Any, source: str | Path | None = None, allow_imports: Sequence[str] = ()
+) -> GameFile:
+    """Validate an already parsed game mapping (the schema of :func:`load_game`;
+    ``allow_imports`` as there)."""
+    if isinstance(allow_imports, str):
+        allow_imports = (allow_imports,)
+    with _allow_imports(*allow_imports, where="allow_imports"):
+        return _parse_game(data, source)
+
+
+def _parse_game(data: Any, source: str | Path | None) -> GameFile:
     if not isinstance(data, Mapping):
         where = Path(source).name if source is not None else "game"
         raise SpecError(
@@ -319,7 +347,7 @@ def _dynamics(d: Any, where: str):
     if "type" not in d:
         raise SpecError(f"{where}.type", f"missing; expected one of {sorted(_DYNAMICS)}")
     kind = d["type"]
-    cls = DYNAMICS.resolve(kind, f"{where}.type")  # a name or 'module:Class' (imported now)
+    cls = DYNAMICS.resolve(kind, f"{where}.type")  # a name or an allowed 'module:Class'
     options = DYNAMICS.options(cls)
     _keys(d, where, ("type", *options))
     if cls.__module__.startswith("epo_casadi."):  # built-in options are positive lengths
@@ -339,7 +367,7 @@ def _feature(
     if "type" not in f:
         raise SpecError(f"{where}.type", f"missing; expected one of {sorted(registry)}")
     kind = f["type"]
-    # a registered name or 'module:Class' (imported now); a wrong kind of class is refused
+    # a registered name or an allowed 'module:Class'; a wrong kind of class is refused
     cls = (FEATURES if registry is OWN_FEATURES else _PAIR_REGISTRY).resolve(kind, f"{where}.type")
     allowed = ("type", *[fl.name for fl in fields(cls)])
     _keys(f, where, allowed)
@@ -474,38 +502,50 @@ def _options_object(solver: str, values: dict, where: str):
 
 
 def _check_size(data: Any, where: str, limit: int | None = None) -> None:
-    """Refuse data that expands to more than ``limit`` values (default :data:`MAX_VALUES`).
+    """Refuse data that expands to more than ``limit`` values (default :data:`MAX_VALUES`)
+    or that is nested more than :data:`MAX_DEPTH` levels deep.
 
     YAML aliases make one list stand for many: the count is the expanded one, computed in
-    time linear in the *distinct* nodes (each shared node is counted once and remembered),
-    so a bomb is measured without being walked. A structure that contains itself is
-    refused too. The error names the smallest entry that is too large.
+    time linear in the *distinct* nodes (each shared node is counted once and remembered,
+    with its height), so a bomb is measured without being walked. A structure that
+    contains itself is refused too. The error names the smallest entry that is too large.
     """
     limit = MAX_VALUES if limit is None else limit
-    memo: dict[int, int] = {}
+    memo: dict[int, tuple[int, int]] = {}  # id -> (expanded size, height)
     open_: set[int] = set()
 
-    def children(x):
-        return list(x.values()) if isinstance(x, Mapping) else list(x)
+    def too_deep(at: str):
+        return SpecError(
+            at or where, f"nested more than {MAX_DEPTH} levels deep; a game file needs about 7"
+        )
 
-    def size(x, at: str) -> int:
+    def measure(x, at: str, depth: int) -> tuple[int, int]:
         if not isinstance(x, (Mapping, list)):
-            return 1
+            return 1, 0
         i = id(x)
         if i in memo:
-            return memo[i]
+            n, h = memo[i]
+            if depth + h > MAX_DEPTH:
+                raise too_deep(at)
+            return n, h
+        if depth >= MAX_DEPTH:
+            raise too_deep(at)
         if i in open_:
             raise SpecError(at or where, "a YAML alias refers to a structure that contains it")
         open_.add(i)
-        n = 1
+        n, h = 1, 0
         items = x.items() if isinstance(x, Mapping) else enumerate(x)
         for k, c in items:
-            n += size(c, _child(at, k))
+            cn, ch = measure(c, _child(at, k), depth + 1)
+            n, h = n + cn, max(h, ch + 1)
             if n > limit:
                 break  # no need to count further
         open_.discard(i)
-        memo[i] = n
-        return n
+        memo[i] = (n, h)
+        return n, h
+
+    def size(x, at: str) -> int:
+        return measure(x, at, 0)[0]
 
     def _child(at: str, k) -> str:
         return f"{at}[{k}]" if isinstance(k, int) else (f"{at}.{k}" if at else str(k))
@@ -652,10 +692,14 @@ def _load_yaml(text: str, where: str):
         pass
 
     def _mapping(loader, node, deep=False):
-        out = {}
+        out, merged = {}, {}
         for knode, vnode in node.value:
-            key = loader.construct_object(knode, deep=deep)
             mark = knode.start_mark
+            if knode.tag == "tag:yaml.org,2002:merge":  # '<<: *base' or '<<: [*a, *b]'
+                for src in reversed(_merge_sources(loader, vnode, deep, mark)):
+                    merged.update(src)  # the first mapping listed wins
+                continue
+            key = loader.construct_object(knode, deep=deep)
             try:
                 hash(key)
             except TypeError:
@@ -670,6 +714,21 @@ def _load_yaml(text: str, where: str):
                     f"duplicate key {short_repr(key)} at line {mark.line + 1}, column {mark.column + 1}",
                 )
             out[key] = loader.construct_object(vnode, deep=deep)
+        # YAML merge keys: the mapping's own keys override the merged ones, wherever written
+        return {**{k: v for k, v in merged.items() if k not in out}, **out} if merged else out
+
+    def _merge_sources(loader, vnode, deep, mark) -> list:
+        """The mappings a merge key ``<<`` names (a mapping, or a list of mappings)."""
+        nodes = vnode.value if isinstance(vnode, yaml.SequenceNode) else [vnode]
+        out = []
+        for n in nodes:
+            if not isinstance(n, yaml.MappingNode):
+                raise SpecError(
+                    where,
+                    f"the merge key '<<' at line {mark.line + 1}, column {mark.column + 1} "
+                    "expects a mapping (an alias like *base) or a list of mappings",
+                )
+            out.append(loader.construct_object(n, deep=deep))
         return out
 
     _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.game import PotentialGame
 
 __all__ = [
@@ -30,6 +30,9 @@ __all__ = [
     "plot_energy_history",
     "plot_sparsity",
     "agent_colors",
+    "image_formats",
+    "check_image_path",
+    "save_figure",
 ]
 
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2")
@@ -46,14 +49,45 @@ def _figure(figsize):
     return Figure(figsize=figsize, dpi=110, layout="constrained")
 
 
-def _save(fig, path):
-    """Write ``fig`` to ``path`` atomically (format from the suffix, PNG if none)."""
-    if path is not None:
-        from scenarios.files import write_atomic
+def image_formats() -> list[str]:
+    """The file name suffixes (without the dot) of the image formats matplotlib writes."""
+    from matplotlib.backend_bases import FigureCanvasBase
 
-        path = Path(path)
-        fmt = path.suffix.lstrip(".").lower() or "png"
-        write_atomic(path, lambda f: fig.savefig(f, format=fmt))
+    return sorted(FigureCanvasBase.get_supported_filetypes())
+
+
+def check_image_path(path: str | Path, option: str = "path") -> Path:
+    """``path`` as a :class:`Path` if its suffix names an image format matplotlib writes
+    (no suffix: PNG); else :class:`SpecError` naming ``option`` and the formats. Commands
+    call it on their figure options before any work."""
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower()
+    if fmt and fmt not in image_formats():
+        raise SpecError(
+            option,
+            f"unknown image format {short_repr(path.suffix)} ({path.name!s:.80}); expected one "
+            f"of {', '.join('.' + f for f in image_formats())}",
+        )
+    return path
+
+
+def save_figure(fig, path: str | Path, field: str = "path", **savefig) -> Path:
+    """Write ``fig`` to ``path`` atomically in the image format of its suffix (PNG without
+    one): an unknown suffix is a :class:`SpecError` naming ``field``; a folder that cannot
+    be written (read-only, a full disk) is one :class:`~epo_casadi.errors.OutputError` and
+    leaves no partial file. ``savefig`` goes to matplotlib's ``savefig`` (``dpi``, ...)."""
+    from scenarios.files import write_atomic
+
+    path = check_image_path(path, field)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    write_atomic(path, lambda f: fig.savefig(f, format=fmt, **savefig))
+    return path
+
+
+def _save(fig, path):
+    """Write ``fig`` to ``path`` (when given) with :func:`save_figure`; returns ``fig``."""
+    if path is not None:
+        save_figure(fig, path)
     return fig
 
 

@@ -147,8 +147,10 @@ def _split_top(text: str, sep: str = ",") -> list[str]:
 
 def parse_solver(text: str) -> SolverChoice:
     """``"lm"``, ``"ipopt:max_iter=200,tol=1e-6"``, ``"sqp:collision=true"``: the name,
-    then ``key=value`` pairs (values in YAML: numbers, ``true``, lists, mappings)."""
-    import yaml
+    then ``key=value`` pairs, each value read by :func:`epo_casadi.settings.parse_value`
+    (the reader of every ``KEY=VALUE``: numbers, ``true``/``false``/``none``, lists,
+    mappings such as ``{a0: [[-1, -1], [1, 1]]}``, else the text)."""
+    from epo_casadi.settings import parse_value
 
     if not isinstance(text, str) or not text.strip():
         raise SpecError("--solver", f"expected NAME or NAME:key=value,..., got {text!r}")
@@ -163,12 +165,9 @@ def parse_solver(text: str) -> SolverChoice:
         key = key.strip()
         if not eq or not key:
             raise SpecError(f"--solver {name}", f"expected key=value, got {short_repr(item)}")
-        try:
-            values[key] = yaml.safe_load(raw)
-        except yaml.YAMLError:
-            raise SpecError(
-                f"--solver {name}.{key}", f"cannot read the value {short_repr(raw)}"
-            ) from None
+        if key in values:
+            raise SpecError(f"--solver {name}.{key}", "given twice")
+        values[key] = parse_value(raw, f"--solver {name}.{key}")
     return SolverChoice(name, values, label=text.strip())
 
 

@@ -23,6 +23,7 @@ import click
 import numpy as np
 
 from epo_casadi.errors import SpecError
+from scenarios.commands.options import allow_import_option
 
 __all__ = ["compare", "load_games", "crossing_family", "SCALING_N", "SCALING_K"]
 
@@ -109,12 +110,12 @@ def _read_init(text: str, games):
 def _save_figure(path: Path, fig) -> None:
     import matplotlib.pyplot as plt
 
-    from scenarios.files import write_atomic
+    from scenarios.plotting import save_figure
 
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    write_atomic(path, buf.getvalue())
+    try:
+        save_figure(fig, path, "--out", dpi=90)
+    finally:
+        plt.close(fig)
 
 
 @click.command("compare")
@@ -145,9 +146,10 @@ def _save_figure(path: Path, fig) -> None:
     "--scaling", is_flag=True, help="Also run the scaling study (N 2..8, K 20..200; minutes)."
 )
 @click.option("--quick", is_flag=True, help="Scaling study on fewer sizes (N 2, 4; K 20, 50).")
+@allow_import_option
 def compare(games, solver_texts, init_texts, out_dir, no_check, no_figures, scaling, quick):
     """Compare solvers on GAMES (files, folders or example:NAME) from several starts."""
-    from scenarios.files import ensure_dir, write_atomic
+    from scenarios.files import check_output_file, ensure_dir, write_atomic
     from solvers.compare import (
         SOLVERS,
         fit_slopes,
@@ -158,6 +160,7 @@ def compare(games, solver_texts, init_texts, out_dir, no_check, no_figures, scal
         scaling_study,
     )
 
+    check_output_file(out_dir / "compare.md", "--out")  # a folder that can be written, first
     solvers = [parse_solver(s) for s in (solver_texts or SOLVERS)]
     labels = [s.label for s in solvers]
     if len(set(labels)) != len(labels):

@@ -61,13 +61,19 @@ def _table(header, rows) -> str:
 )
 def demo(out_dir: Path):
     """Solve a 2-agent crossing and a 4-agent intersection with LM and IPOPT; compare."""
-    from scenarios.commands.solve import energy_history, result_dict, run_solve, write_result
-    from scenarios.files import ensure_dir
+    from scenarios.commands.solve import (
+        energy_history,
+        result_dict,
+        run_solve,
+        write_result,
+    )
+    from scenarios.files import check_output_file, ensure_dir
     from scenarios.gamefile import example_path, load_game
     from scenarios.plotting import plot_energy_history, plot_trajectories
 
     t_all = time.perf_counter()
     ensure_dir(out_dir)
+    check_output_file(out_dir / f"{DEMO_GAMES[0]}_lm.json", "--out")  # writable, before work
     rows, written = [], []
     for name in DEMO_GAMES:
         gf = load_game(example_path(name))

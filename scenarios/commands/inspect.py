@@ -18,6 +18,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from scenarios.commands.options import allow_import_option
+
 
 @click.command("inspect")
 @click.argument("game_file", type=click.Path(dir_okay=False, path_type=Path))
@@ -82,6 +84,7 @@ import numpy as np
     default=False,
     help="Print one JSON object (schema epo-inspect/1) instead of the text.",
 )
+@allow_import_option
 def inspect_cmd(
     game_file: Path,
     at: Path | None,
@@ -103,6 +106,12 @@ def inspect_cmd(
 
     if solve and at is not None:
         raise SpecError("--solve", "give either --solve or --result/--at, not both")
+    from scenarios.files import check_output_file
+    from scenarios.plotting import check_image_path
+
+    for option, path in (("--spy-png", spy_png), ("--plot", plot)):  # before any work
+        if path is not None:
+            check_output_file(check_image_path(path, option), option)
     gf = load_game(game_file)
     game = gf.game
     u = None

@@ -36,7 +36,8 @@ import numpy as np
 
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
-from scenarios.files import write_atomic
+from scenarios.commands.options import allow_import_option
+from scenarios.files import check_output_file, write_atomic
 from solvers.lm import MAX_STEPS
 from solvers.result import Status, fmt_number
 
@@ -363,6 +364,7 @@ def mode_lines(game: PotentialGame, modes: list[dict], n_samples: int, statuses:
     show_default=True,
     help="Compute the local Nash certificate (a best-response solve per agent).",
 )
+@allow_import_option
 def solve(
     game_file: Path,
     solver: str,
@@ -376,8 +378,12 @@ def solve(
 ):
     """Solve GAME_FILE (YAML or JSON game file) and print a short summary."""
     from scenarios.gamefile import apply_settings, load_game
+    from scenarios.plotting import check_image_path
 
     t0 = time.perf_counter()
+    check_output_file(out, "--out")  # before any work: nothing is solved for an unwritable path
+    if plot is not None:
+        check_output_file(check_image_path(plot, "--plot"), "--plot")
     gf = load_game(game_file)
     game = gf.game
     p = apply_settings(game, gf.params, settings)
