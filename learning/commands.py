@@ -9,7 +9,6 @@ raise the toolkit's typed errors, which :func:`scenarios.cli.main` prints as one
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -21,17 +20,10 @@ SPLITS = ("train", "val", "test")
 
 
 def _parse_set(items: tuple[str, ...]) -> dict:
-    """``KEY=VALUE`` model overrides; values are JSON (``64``, ``0.3``, ``false``) or bare strings."""
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise SpecError("--set", f"expected KEY=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        try:
-            out[k.strip()] = json.loads(v)
-        except ValueError:
-            out[k.strip()] = {"true": True, "false": False}.get(v.strip().lower(), v.strip())
-    return out
+    """``KEY=VALUE`` model overrides, read by :func:`epo_casadi.settings.parse_settings`."""
+    from epo_casadi.settings import parse_settings
+
+    return parse_settings(items, "--set")
 
 
 def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
@@ -137,9 +129,14 @@ def train_cmd(
     threads,
     progress,
 ):
-    """Train a model on the train split of a dataset; validate on val after every epoch."""
-    from .train import TrainConfig, train
+    """Train a model on the train split of a dataset; validate on val after every epoch.
 
+    One training at a time per --out folder (a second is refused while the first runs);
+    --out must not be a dataset folder.
+    """
+    from .train import TrainConfig, check_run_dir, train
+
+    check_run_dir(out, data, field="--out")
     over = _parse_set(overrides)
     if lm_steps is not None:
         over["lm_steps"] = lm_steps
@@ -194,7 +191,11 @@ def train_cmd(
 )
 @click.option("--progress/--no-progress", default=False, show_default=True)
 def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threads, progress):
-    """Score run directories (mean ± std over runs of one model) and baselines on a split."""
+    """Score run directories (mean ± std over runs of one model) and baselines on a split.
+
+    Each RUN counts once: a run folder given twice (also through another path) is
+    refused. --out must not be the dataset folder.
+    """
     from .evaluate import evaluate
 
     if baseline is not None and baseline != "cv":
@@ -204,6 +205,8 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
         )
     if not runs and baseline is None:
         raise SpecError("RUN", "expected at least one run directory, or --model cv")
+    if out is not None:  # before the evaluation: a bad --out wastes no time
+        _check_results_dir(out.parent if out.suffix == ".md" else out, data)
     report = evaluate(
         list(runs),
         data,
@@ -229,6 +232,28 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
                 raise SpecError("--out", f"expected a directory, {out} is a file")
             paths = report.write(out / "results")
         click.echo("wrote " + ", ".join(str(p) for p in paths))
+
+
+def _check_results_dir(folder: Path, data: Path) -> None:
+    """Refuse an evaluate --out folder that is a file, a dataset folder or not writable."""
+    import os
+
+    from epo_casadi.errors import OutputError
+    from scenarios.dataset import MANIFEST
+    from scenarios.files import check_output_dir
+
+    if folder.exists() and not folder.is_dir():
+        raise SpecError("--out", f"expected a directory, {folder} is a file")
+    check_output_dir(folder)
+    if (folder / MANIFEST).is_file() or (folder.exists() and folder.resolve() == data.resolve()):
+        raise SpecError(
+            "--out",
+            f"{folder} is a dataset folder (it holds {MANIFEST}); give a folder of its own "
+            "for the results",
+        )
+    near = next(a for a in (folder, *folder.parents) if a.exists())
+    if not os.access(near, os.W_OK | os.X_OK):
+        raise OutputError(folder, "Permission denied")
 
 
 def _sample_figure_options(default_out: str):

@@ -59,7 +59,14 @@ import torch
 
 from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
-from scenarios.dataset import MANIFEST, DatasetError, SplitReader, check_indices, read_manifest
+from scenarios.dataset import (
+    MANIFEST,
+    DatasetError,
+    SplitReader,
+    as_indices,
+    check_index,
+    read_manifest,
+)
 
 __all__ = [
     "REQUIRED_FIELDS",
@@ -319,15 +326,14 @@ class SceneDataset(torch.utils.data.Dataset):
 
     def read(self, indices) -> dict[str, np.ndarray]:
         """Numpy arrays of the samples ``indices`` (any order): the batch fields but ``index``."""
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        idx = as_indices(indices, len(self), self.split)  # as in SplitReader
         if self._arrays is not None:
-            check_indices(idx, len(self), self.split)  # negatives refused, as in SplitReader
             return {k: v[idx] for k, v in self._arrays.items()}
         return self._prepare(self.reader.read(idx))
 
     def batch(self, indices) -> dict[str, torch.Tensor]:
         """Collated batch (see the module docstring) of the samples ``indices``."""
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        idx = as_indices(indices, len(self), self.split)
         a = self.read(idx)
         out = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in a.items()}
         out["gt"] = out["gt_states"][..., :2]
@@ -336,9 +342,8 @@ class SceneDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         """One sample (no batch axis); prefer :meth:`batches` for speed."""
-        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
-            raise SpecError("index", f"expected an integer, got {i!r}")
-        return {k: v[0] for k, v in self.batch([int(i)]).items()}
+        i = check_index(i, len(self), self.split)
+        return {k: v[0] for k, v in self.batch([i]).items()}
 
     def order(self, shuffle: bool = False, seed: int = 0, epoch: int = 0) -> np.ndarray:
         """Sample order of an epoch: ``0..n-1``, or the permutation drawn from ``(seed, epoch)``."""

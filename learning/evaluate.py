@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from epo_casadi.errors import SpecError
+from scenarios.files import ensure_dir, write_atomic
 
 from .baselines import ConstantVelocity
 from .data import SceneDataset
@@ -161,15 +162,19 @@ class EvalReport:
         return "\n".join(lines) + "\n"
 
     def write(self, prefix: str | os.PathLike) -> list[Path]:
-        """``PREFIX.md`` (table), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per run)."""
+        """``PREFIX.md`` (table), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per run).
+
+        Each file is written atomically (:func:`scenarios.files.write_atomic`): a folder
+        that cannot be written is one :class:`~epo_casadi.errors.OutputError` naming the
+        file, and no partial file is left."""
         p = Path(prefix)
-        p.parent.mkdir(parents=True, exist_ok=True)
+        ensure_dir(p.parent)
         md, summ, runs = (
             p.with_name(p.name + ".md"),
             p.with_name(p.name + ".csv"),
             p.with_name(p.name + "_runs.csv"),
         )
-        md.write_text(self.markdown())
+        write_atomic(md, self.markdown())
         _csv(summ, self.summary_rows())
         _csv(
             runs,
@@ -197,7 +202,7 @@ def _csv(path: Path, rows: list[dict]) -> None:
         w = csv.DictWriter(buf, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    path.write_text(buf.getvalue())
+    write_atomic(path, buf.getvalue())
 
 
 def evaluate(
@@ -212,11 +217,25 @@ def evaluate(
 ) -> EvalReport:
     """Score run directories (and CV with ``cv=True``) on ``split`` of ``data_dir``.
 
-    ``threads``: torch threads during the call (:func:`learning.train.torch_threads`).
+    A run given twice (the same folder after resolving links and ``..``) is refused
+    with :class:`SpecError` (field ``runs``): it would count twice in its method's
+    mean ± std. ``threads``: torch threads during the call
+    (:func:`learning.train.torch_threads`).
     """
     runs = [runs] if isinstance(runs, (str, os.PathLike)) else list(runs or [])
     if not runs and not cv:
         raise SpecError("runs", "expected at least one run directory (or cv=True)")
+    seen: dict[Path, str] = {}
+    for run in runs:
+        key = Path(run).resolve()
+        if key in seen:
+            same = "" if str(run) == seen[key] else f" (also as {seen[key]})"
+            raise SpecError(
+                "runs",
+                f"{run} is given twice{same}; a run counts once in its method's mean ± std, "
+                "give each run folder once",
+            )
+        seen[key] = str(run)
     with torch_threads(threads):
         return _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress)
 

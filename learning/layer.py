@@ -75,7 +75,9 @@ Precision and devices
     path and none has been tested).
 
 Invalid inputs
-    NaN/inf in ``p`` or ``u_init`` and negative weights (``w_own``/``w_pair`` groups)
+    A ``meta`` tensor (a shape without values) or a sparse one is refused with
+    :class:`epo_casadi.SpecError` naming the input. NaN/inf in ``p`` or ``u_init`` and
+    negative weights (``w_own``/``w_pair`` groups)
     raise :class:`epo_casadi.SpecError` (a ``ValueError``) naming the input, the
     parameter entries and the problem index. With ``on_invalid="mask"`` such a problem is
     solved on safe stand-in values instead and masked: its outputs are zeros, its status
@@ -466,6 +468,19 @@ def _to_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().to(device="cpu", dtype=torch.float64).contiguous().numpy().copy()
 
 
+def _check_holds_values(name: str, t: torch.Tensor) -> None:
+    """Refuse a tensor without values to solve on: a ``meta`` tensor (shape only) or a
+    sparse one; :class:`SpecError` naming the input."""
+    if t.is_meta:
+        raise SpecError(
+            name,
+            "expected a tensor with values, got a 'meta' tensor (a shape without data); "
+            "give a tensor on the CPU or a CUDA device",
+        )
+    if t.layout != torch.strided:
+        raise SpecError(name, f"expected a dense (strided) tensor, got layout {t.layout}")
+
+
 class GameLayerFunction(torch.autograd.Function):
     """``apply(core, p, u_init, batch_shape) -> (controls, states, status)`` on 2-D inputs.
 
@@ -483,6 +498,7 @@ class GameLayerFunction(torch.autograd.Function):
                 "u_init", f"expected shape ({p.shape[0]}, {game.n_u}), got {tuple(u_init.shape)}"
             )
         for name, t in (("p", p), ("u_init", u_init)):
+            _check_holds_values(name, t)
             if not t.is_floating_point():
                 raise SpecError(name, f"expected a floating-point tensor, got {t.dtype}")
         dtype = torch.promote_types(p.dtype, u_init.dtype)
@@ -665,6 +681,8 @@ class GameLayer(nn.Module):
             raise SpecError(
                 "u_init", f"expected last dimension n_u = {g.n_u}, got shape {tuple(u_init.shape)}"
             )
+        for name, t in (("p", p), ("u_init", u_init)):
+            _check_holds_values(name, t)
         try:
             lead = torch.broadcast_shapes(p.shape[:-1], u_init.shape[:-1])
         except RuntimeError:

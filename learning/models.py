@@ -57,7 +57,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from epo_casadi.errors import SpecError, check_bool, check_number
+from epo_casadi.errors import SpecError, check_bool, check_number, check_size
 from epo_casadi.features import Collision
 from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
@@ -74,6 +74,7 @@ __all__ = [
     "goal_paths",
     "scene_reference",
     "ModelConfig",
+    "SIZE_LIMITS",
     "LAYER_BACKENDS",
     "EXECUTION_SETTINGS",
     "layer_execution",
@@ -113,9 +114,32 @@ def layer_execution(cfg: ModelConfig) -> tuple[str, bool]:
     return backend, compiled
 
 
+#: the largest value of every size setting of :class:`ModelConfig` (checked before any
+#: network is built: ``hist_width = 10**6`` would ask for terabytes). Widths up to 32x the
+#: paper's, depths, modes, heads and LM steps far beyond any setting the paper uses.
+SIZE_LIMITS = {
+    "modes": 64,  # joint modes M: B x M games in the layer
+    "hist_width": 2048,  # LSTM / transformer widths
+    "hist_layers": 16,
+    "lane_width": 2048,
+    "global_width": 4096,
+    "heads": 64,
+    "dec_width": 2048,
+    "lm_steps": 100,  # S: unrolled LM steps (the backward pass keeps every one)
+    "goal_rings": 100,  # generated goal candidates: rings x angles
+    "goal_angles": 360,
+}
+
+
 @dataclass(frozen=True)
 class ModelConfig:
-    """Architecture and layer settings (defaults: paper App. F.1, F.3)."""
+    """Architecture and layer settings (defaults: paper App. F.1, F.3).
+
+    Every size setting (``modes``, the widths, ``hist_layers``, ``heads``, ``lm_steps``,
+    ``goal_rings``, ``goal_angles``) is an integer from 1 to its limit in
+    :data:`SIZE_LIMITS`; a larger one is refused with :class:`SpecError` naming the field
+    and the limit before any network is built.
+    """
 
     kind: str = "epo"  #: "epo" (ours), "sc" (+ SC), "vlstm" (marginal), "tgl" (+ TGL)
     modes: int = 2  #: M joint modes (RPI: 2)
@@ -181,19 +205,9 @@ class ModelConfig:
                 "model.goal_decoder",
                 f"only the 'epo' model decodes goals; the {self.kind!r} model needs 'given'",
             )
-        for k in (
-            "modes",
-            "hist_width",
-            "hist_layers",
-            "lane_width",
-            "global_width",
-            "heads",
-            "dec_width",
-            "lm_steps",
-            "goal_rings",
-            "goal_angles",
-        ):
+        for k, limit in SIZE_LIMITS.items():
             check_number(f"model.{k}", getattr(self, k), lo=1, integer=True)
+            check_size(f"model.{k}", getattr(self, k), limit, "the model's memory and time")
         if self.global_width % self.heads:
             raise SpecError(
                 "model.heads",

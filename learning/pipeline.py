@@ -165,7 +165,9 @@ def run_pipeline(
         "seconds": seconds,
         "figure_index": index,
     }
-    (out / "pipeline.json").write_text(json.dumps(info, indent=1) + "\n")
+    from scenarios.files import write_atomic
+
+    write_atomic(out / "pipeline.json", json.dumps(info, indent=1) + "\n")
     files.append(out / "pipeline.json")
     echo(
         f"results: {files[0]} (table), {out / 'figures'} (predictions), "

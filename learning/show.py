@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from epo_casadi.errors import SpecError
-from scenarios.dataset import SplitReader
+from scenarios.dataset import SplitReader, check_index
 
 from .baselines import ConstantVelocity
 from .data import SceneDataset
@@ -39,7 +39,8 @@ def load_sample(data_dir: str | os.PathLike, split: str, index: int) -> tuple:
     if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
         raise SpecError("index", f"expected an integer, got {index!r}")
     with SceneDataset(data_dir, split) as data:
-        game, batch = data.game, data.batch([int(index)])
+        index = check_index(index, len(data), split)  # any size of integer: one line
+        game, batch = data.game, data.batch([index])
     with SplitReader(data_dir, split) as r:
         raw = r[int(index)]
         agents = list(r.manifest.get("meta", {}).get("agents") or game.agent_names)
@@ -234,7 +235,6 @@ def show_predictions(
             axw.grid(alpha=0.3, axis="y")
             if row == 0:
                 axw.legend(fontsize=7, ncol=M + 1, loc="lower left", bbox_to_anchor=(0, 1.12))
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=100, bbox_inches="tight")
-    return out_png
+    from scenarios.plotting import save_figure
+
+    return save_figure(fig, Path(out_png), "out_png", dpi=100, bbox_inches="tight")

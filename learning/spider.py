@@ -109,7 +109,7 @@ def weight_spider(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from scenarios.files import write_atomic
+    from scenarios.plotting import save_figure
 
     from .train import load_model
 
@@ -153,7 +153,7 @@ def weight_spider(
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(-0.35, 1.25))
     fig.suptitle(f"weights / geometric mean of the mode's weights, {split}[{index}]", fontsize=10)
     out_png = Path(out_png)
-    write_atomic(out_png, lambda f: fig.savefig(f, format="png", dpi=100, bbox_inches="tight"))
+    save_figure(fig, out_png, "out", dpi=100, bbox_inches="tight")  # format from the suffix
     if not return_data:
         return out_png
     return SpiderPlot(out_png, w, axes, probs, float(lo), titles, fig)

@@ -16,11 +16,19 @@ A run directory (``out_dir``)::
     metrics.csv      one row per epoch: train loss parts, samples/s, validation metrics
     loss.png         training loss and validation minADE/minSADE per epoch
     tb/              TensorBoard events (only when ``tensorboard`` is installed)
+    .lock            held (flock) while a training runs: a second ``train`` into the
+                     same folder is refused at once (:func:`scenarios.files.output_lock`)
+
+A run folder is never a dataset folder (one holding ``manifest.json``): :func:`train`
+refuses one (:func:`check_run_dir`) before anything is written.
 
 Checkpoints and resume
     A checkpoint is written at the end of every epoch (and every ``checkpoint_steps``
-    optimizer steps, if set) to a temporary file, fsynced and renamed: a run killed at
-    any moment leaves the previous checkpoint intact. ``checkpoint.pt`` and ``best.pt``
+    optimizer steps, if set) to a temporary file, fsynced and renamed
+    (:func:`scenarios.files.write_atomic`, like every file of the run): a run killed at
+    any moment, or stopped by a full disk or a read-only folder (one
+    :class:`~epo_casadi.errors.OutputError` naming the file), leaves the previous
+    checkpoint intact and no partial file. ``checkpoint.pt`` and ``best.pt``
     carry a sha256 of their content (:data:`CHECKSUM_MAGIC` header line, then the
     ``torch.save`` bytes); :func:`load_checkpoint` verifies it and refuses a changed or
     damaged file naming it. A file written before checksums existed (a plain
@@ -61,7 +69,8 @@ from pathlib import Path
 import torch
 
 from epo_casadi.errors import EpoError, SpecError
-from scenarios.dataset import MANIFEST, DatasetError, check_output_dir, fsync_replace
+from scenarios.dataset import MANIFEST, DatasetError, check_output_dir
+from scenarios.files import output_lock, write_atomic
 
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
@@ -74,6 +83,7 @@ __all__ = [
     "TrainConfig",
     "TrainResult",
     "UncheckedCheckpointWarning",
+    "check_run_dir",
     "compute_loss",
     "load_checkpoint",
     "load_model",
@@ -202,21 +212,17 @@ class TrainResult:
 # checkpoints
 # --------------------------------------------------------------------------------------
 def _atomic_torch_save(obj, path: Path) -> None:
-    """``torch.save`` bytes behind a sha256 header line, fsynced and renamed into place."""
+    """``torch.save`` bytes behind a sha256 header line, written atomically
+    (:func:`scenarios.files.write_atomic`: a full disk leaves the previous file intact)."""
     buf = io.BytesIO()
     torch.save(obj, buf)
     payload = buf.getvalue()
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(CHECKSUM_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n")
-        f.write(payload)
-    fsync_replace(tmp, path)
+    header = CHECKSUM_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n"
+    write_atomic(path, lambda f: (f.write(header), f.write(payload)))
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    fsync_replace(tmp, path)
+    write_atomic(path, text)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
@@ -430,9 +436,7 @@ def plot_history(rows: list[dict], out_png: str | os.PathLike, title: str = "") 
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    tmp = Path(out_png).with_name(f".{Path(out_png).name}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    os.replace(tmp, out_png)
+    write_atomic(out_png, lambda f: fig.savefig(f, format="png", dpi=100))
 
 
 @contextlib.contextmanager
@@ -514,8 +518,33 @@ def train(
     """
     if not isinstance(config, TrainConfig):
         raise SpecError("config", f"expected a TrainConfig, got {type(config).__name__}")
-    with torch_threads(threads):
-        return _train(data_dir, out_dir, config, progress, on_step)
+    out = check_run_dir(out_dir, data_dir)
+    with torch_threads(threads), output_lock(out, "epo train"):
+        return _train(data_dir, out, config, progress, on_step)
+
+
+def check_run_dir(
+    out_dir: str | os.PathLike, data_dir: str | os.PathLike | None = None, field: str = "out"
+) -> Path:
+    """``out_dir`` as a run folder to create or resume; refused before anything is written.
+
+    A path through a file is a :class:`CheckpointError`; a dataset folder (one holding
+    ``manifest.json``, or ``data_dir`` itself) is a :class:`SpecError` naming ``field``:
+    a run's files never go into a dataset.
+    """
+    out = Path(out_dir)
+    try:
+        check_output_dir(out)
+    except DatasetError as e:
+        raise CheckpointError(e.where, e.message) from None
+    same = data_dir is not None and out.exists() and out.resolve() == Path(data_dir).resolve()
+    if same or (out / MANIFEST).is_file():
+        raise SpecError(
+            field,
+            f"{out} is a dataset folder (it holds {MANIFEST}); give a run folder of its own, "
+            "e.g. runs/NAME",
+        )
+    return out
 
 
 def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> TrainResult:
@@ -540,12 +569,7 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
         val_ds = SceneDataset(data_dir, cfg.val_split)
         if len(val_ds) == 0:
             val_ds = None
-    out = Path(out_dir)
-    try:
-        check_output_dir(out)
-    except DatasetError as e:
-        raise CheckpointError(e.where, e.message) from None
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out_dir)  # created and locked by train()
     ck_path, best_path = out / "checkpoint.pt", out / "best.pt"
     summary = game_summary(game)
     fingerprint = train_ds.fingerprint
@@ -739,9 +763,12 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
                     | {"metrics": row},
                     best_path,
                 )
-            _atomic_torch_save(snap, ck_path)
             _write_csv(out / "metrics.csv", history)
             plot_history(history, out / "loss.png", title=f"{kind}: {out.name}")
+            # the checkpoint last: it commits the epoch, so a failed write of any file
+            # (a full disk) leaves the previous epoch's checkpoint, and a rerun redoes the
+            # epoch and writes every file again
+            _atomic_torch_save(snap, ck_path)
             if writer is not None:
                 for k, v in row.items():
                     if k.startswith(("val_", "train_")) and math.isfinite(v):

@@ -19,20 +19,33 @@ Shards
     Per split, the units (sorted by index) are grouped ``units_per_shard`` at a time; a
     shard holds the samples of its units in unit order, every schema field as one HDF5
     dataset of shape ``(n, *field_shape)`` (chunked along the first axis, deflate + shuffle
-    filters). Attributes: ``format_version``, ``scenario``, ``split``, ``units``.
-    HDF5 files are written without timestamps, so equal content gives equal bytes and
-    equal sha256 checksums.
+    filters). Attributes: ``format_version``, ``scenario``, ``split``, ``units``,
+    ``seed`` and ``dataset`` (:func:`dataset_digest`: the identity of the dataset, a
+    sha256 of the manifest's scenario, recipe and seed; shards written before it was
+    recorded have no ``seed`` and ``dataset``). HDF5 files are written without
+    timestamps, so equal content gives equal bytes and equal sha256 checksums.
 
 Crash safety and resume
-    A shard is written to a hidden temporary name, fsynced and renamed into place
-    (``os.replace``, atomic on POSIX); only then is it added, with its sample count and
-    sha256, to ``manifest.json`` (also written to a temporary file and renamed). A
-    generation killed at any point and started again with the same scenario, recipe and
-    seed keeps every shard listed in the manifest whose checksum still matches, removes
-    temporary files, and recomputes the rest: nothing is lost or duplicated. Readers
-    (:class:`SplitReader`, :func:`load_split`) check a shard's sha256 when they open it
-    (:func:`check_shard`, cached per file version), and :func:`read_manifest` checks the
-    manifest's schema (:func:`check_manifest`).
+    A shard is built in memory (HDF5's ``core`` driver), written to a hidden temporary
+    name, fsynced and renamed into place (:func:`scenarios.files.write_atomic`); only
+    then is it added, with its sample count and sha256, to ``manifest.json`` (written the
+    same way). HDF5 never writes to the disk itself, so a full disk or a read-only folder
+    is one :class:`~epo_casadi.errors.OutputError` naming the file, and no partial file
+    is left. A generation killed at any point and started again with the same scenario,
+    recipe and seed keeps every shard listed in the manifest whose checksum still matches
+    and that belongs to it (:func:`shard_problems`), removes temporary files, and
+    recomputes the rest: nothing is lost or duplicated.
+
+Checks on read
+    Readers (:class:`SplitReader`, :func:`load_split`) check the manifest's schema
+    (:func:`read_manifest`, :func:`check_manifest`) and that it agrees with the plan of
+    its splits (:func:`plan_problems`: each shard listed in exactly its own split, with
+    its planned units); when they open a shard, its sha256 (:func:`check_shard`, cached
+    per file version), then that it belongs to this dataset, split and units and that
+    every field has the manifest's shape and dtype (:func:`shard_problems`). So a shard
+    moved to another split, or copied in from another dataset together with its
+    checksum, is refused in one line naming the shard and what differs, never read as
+    this split's samples. :func:`verify` runs every check and lists every problem.
 
 Manifest (``format_version`` 1), JSON::
 
@@ -58,7 +71,6 @@ Engines
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import math
@@ -75,7 +87,10 @@ from typing import Any
 
 import numpy as np
 
-from epo_casadi.errors import EpoError, SpecError
+from epo_casadi.errors import EpoError, OutputError, SpecError, short_repr
+
+from .files import check_output_dir as _check_output_dir
+from .files import ensure_dir, output_lock, recipe_difference, sigterm_as_interrupt, write_atomic
 
 __all__ = [
     "FORMAT_VERSION",
@@ -96,6 +111,12 @@ __all__ = [
     "sha256_file",
     "check_manifest",
     "check_shard",
+    "check_index",
+    "as_indices",
+    "plan_problems",
+    "shard_problems",
+    "dataset_digest",
+    "plan_shards",
     "check_output_dir",
     "sigterm_as_interrupt",
 ]
@@ -294,11 +315,21 @@ def fsync_replace(tmp: str | os.PathLike, dst: str | os.PathLike) -> None:
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=False)
-        f.write("\n")
-    fsync_replace(tmp, path)
+    """``obj`` as JSON at ``path``, atomically (:func:`scenarios.files.write_atomic`)."""
+    write_atomic(path, json.dumps(obj, indent=1, sort_keys=False) + "\n")
+
+
+def dataset_digest(m: dict) -> str:
+    """Identity of a dataset: sha256 of its manifest's ``scenario``, ``recipe`` and ``seed``.
+
+    Generation is deterministic, so equal identities hold equal samples. Every shard
+    records it (attribute ``dataset``) when it is written; readers and :func:`verify`
+    refuse a shard whose identity differs from its manifest's (a shard of another
+    dataset copied in, even with its checksum).
+    """
+    key = {k: m.get(k) for k in ("scenario", "recipe", "seed")}
+    text = json.dumps(key, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def write_shard(
@@ -308,8 +339,21 @@ def write_shard(
     units: Sequence[int],
     schema: dict[str, FieldSpec],
     parts: Sequence[dict[str, np.ndarray]],
+    *,
+    dataset: str | None = None,
+    seed: int | None = None,
 ) -> tuple[int, str]:
-    """Write one shard atomically; returns ``(samples, sha256)``."""
+    """Write one shard atomically; returns ``(samples, sha256)``.
+
+    ``dataset`` (:func:`dataset_digest` of the manifest) and ``seed`` are recorded as the
+    shard's attributes ``dataset`` and ``seed`` beside ``format_version``, ``scenario``,
+    ``split`` and ``units``. The HDF5 file is built in memory (HDF5's ``core`` driver, the
+    same bytes as a file on disk) and its bytes written by
+    :func:`scenarios.files.write_atomic`: the HDF5 library never writes to the disk
+    itself, so a full disk or a read-only folder is one
+    :class:`~epo_casadi.errors.OutputError` naming the shard, leaves no partial file, and
+    never crashes inside HDF5.
+    """
     import h5py
 
     data = {
@@ -319,12 +363,16 @@ def write_shard(
         for k, fs in schema.items()
     }
     n = int(next(iter(data.values())).shape[0]) if data else 0
-    tmp = path.with_name(f".{path.name}.tmp")
-    with h5py.File(tmp, "w", libver=("earliest", "v110")) as f:
+    f = h5py.File(path.name, "w", libver=("earliest", "v110"), driver="core", backing_store=False)
+    try:
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["scenario"] = scenario_name
         f.attrs["split"] = split
         f.attrs["units"] = np.asarray(units, dtype=np.int64)
+        if dataset is not None:
+            f.attrs["dataset"] = dataset
+        if seed is not None:
+            f.attrs["seed"] = np.int64(seed)
         for k, fs in schema.items():
             a = data[k]
             if n:
@@ -342,8 +390,12 @@ def write_shard(
                 )
             else:
                 f.create_dataset(k, data=a)
-    fsync_replace(tmp, path)
-    return n, sha256_file(path)
+        f.flush()
+        image = f.id.get_file_image()
+    finally:
+        f.close()
+    write_atomic(path, image)
+    return n, hashlib.sha256(image).hexdigest()
 
 
 def read_manifest(directory: str | os.PathLike) -> dict:
@@ -504,6 +556,165 @@ def check_shard(path: str | os.PathLike, sha256: str) -> None:
         )
 
 
+def plan_problems(m: dict) -> list[tuple[str, str]]:
+    """Where a (schema-checked) manifest disagrees with the plan of its own splits.
+
+    The plan (:func:`plan_shards` of ``splits.<split>.units`` and ``units_per_shard``)
+    gives every shard its split and units. Returns ``(manifest field, message)`` pairs:
+    a unit in two splits or in none, a shard listed in another split than its own or in
+    two, a listed shard that is not planned, a split that lists not exactly its planned
+    shards in order, and a finished shard whose recorded split or units differ from the
+    plan. Empty for a consistent manifest. :func:`verify` reports them all; readers
+    (:class:`SplitReader`) refuse the first. A shard's messages name the shard, the split
+    it belongs to and the split that lists it.
+    """
+    out: list[tuple[str, str]] = []
+    seen: dict[int, str] = {}
+    for s in SPLITS:
+        for u in m["splits"][s]["units"]:
+            if u in seen:
+                out.append((f"splits.{s}", f"unit {u} is also in split {seen[u]}"))
+            seen[u] = s
+    if sorted(seen) != list(range(m["n_units"])):
+        out.append(("splits", f"units do not cover 0..{m['n_units'] - 1} exactly once"))
+    planned = _planned(m)
+    for s in SPLITS:
+        names = m["splits"][s]["shards"]
+        where = f"splits.{s}.shards"
+        bad, earlier = False, set()
+        for n in names:
+            p = planned.get(n)
+            bad = True
+            if p is None:
+                out.append((where, f"shard {n!r} is not a planned shard of this dataset"))
+            elif p["split"] != s:
+                out.append(
+                    (
+                        where,
+                        f"shard {n!r} belongs to split {p['split']!r} (units "
+                        f"{_short(p['units'], 40)}), not to split {s!r}; a shard is listed "
+                        "in exactly one split",
+                    )
+                )
+            elif n in earlier:
+                out.append((where, f"shard {n!r} is listed twice"))
+            else:
+                bad = False
+                earlier.add(n)
+            if bad:
+                break
+        want = [n for n, p in planned.items() if p["split"] == s]
+        if not bad and names != want:
+            missing = [n for n in want if n not in names]
+            if missing:
+                msg = f"planned shard {missing[0]!r} of split {s!r} is not listed"
+            else:
+                msg = f"expected the planned order {_short(want)}, got {_short(names)}"
+            out.append((f"splits.{s}.shards", msg))
+    for name, info in m["shards"].items():
+        p = planned.get(name)
+        key = f"shards[{name!r}]"
+        if p is None:
+            out.append((key, "not a planned shard"))
+        elif info["split"] != p["split"]:
+            out.append(
+                (
+                    f"{key}.split",
+                    f"{info['split']!r}, but the shard belongs to split {p['split']!r}",
+                )
+            )
+        elif info["units"] != p["units"]:
+            out.append(
+                (
+                    f"{key}.units",
+                    f"{_short(info['units'], 40)}, but the plan of split {p['split']!r} gives "
+                    f"{_short(p['units'], 40)}",
+                )
+            )
+    return out
+
+
+def _text(v: Any) -> Any:
+    """An HDF5 attribute as a plain Python value (text, int) where it is one."""
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "replace")
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def shard_problems(h, name: str, m: dict, plan: dict | None = None) -> list[tuple[str, str]]:
+    """Where an open shard ``h`` (h5py) disagrees with its manifest ``m``.
+
+    Checked, in this order: the shard's dataset identity (attributes ``dataset``,
+    ``scenario``, ``seed``; :func:`dataset_digest`), its split and units (attributes
+    ``split``, ``units``) against the plan (``plan``: its entry of :func:`plan_shards`),
+    and every schema field's shape ``(samples, *shape)`` and dtype against the manifest's
+    schema and the shard's recorded sample count. Returns ``(where, message)`` pairs,
+    ``where`` the shard name or ``name.field``. A shard written before the identity was
+    recorded (no ``dataset`` attribute) is checked by the rest only.
+    """
+    import h5py
+
+    out: list[tuple[str, str]] = []
+    plan = _planned(m).get(name) if plan is None else plan
+    attrs = h.attrs
+    scen, seed, ident = _text(attrs.get("scenario")), attrs.get("seed"), attrs.get("dataset")
+    what = None
+    if scen is not None and scen != m["scenario"]:
+        what = f"scenario {_short(scen, 40)}, the manifest's {m['scenario']!r}"
+    elif seed is not None and _text(seed) != m["seed"]:
+        what = f"seed {_short(_text(seed), 40)}, the manifest's {m['seed']}"
+    elif ident is not None and _text(ident) != dataset_digest(m):
+        what = "another recipe than the manifest's"
+    if what is not None:
+        out.append(
+            (
+                name,
+                f"belongs to another dataset ({what}); copy back this dataset's own shard, "
+                "or regenerate it (epo generate with the same options)",
+            )
+        )
+        return out
+    if plan is not None:
+        split = _text(attrs.get("split"))
+        units = attrs.get("units")
+        units = None if units is None else np.asarray(units).reshape(-1).tolist()
+        if split is not None and split != plan["split"]:
+            out.append(
+                (
+                    name,
+                    f"holds samples of split {split!r} (units {_short(units, 40)}), but the "
+                    f"manifest lists it in split {plan['split']!r}",
+                )
+            )
+            return out
+        if units is not None and units != plan["units"]:
+            out.append(
+                (
+                    name,
+                    f"holds units {_short(units, 40)}, the manifest plans units "
+                    f"{_short(plan['units'], 40)} for it",
+                )
+            )
+            return out
+    samples = m["shards"].get(name, {}).get("samples")
+    for k, v in m["schema"].items():
+        shape, dtype = (samples, *v["shape"]), np.dtype(v["dtype"])
+        ds = h.get(k)
+        if not isinstance(ds, h5py.Dataset):
+            out.append((f"{name}.{k}", "field missing (the manifest's schema has it)"))
+            continue
+        if ds.shape != shape or ds.dtype != dtype:
+            out.append(
+                (
+                    f"{name}.{k}",
+                    f"shape {ds.shape} {ds.dtype}, manifest says {shape} {dtype}",
+                )
+            )
+    return out
+
+
 # --------------------------------------------------------------------------------------
 # generation
 # --------------------------------------------------------------------------------------
@@ -558,27 +769,14 @@ def _same_dataset(old: dict, new: dict) -> str | None:
             if key == "recipe" and isinstance(a, dict) and isinstance(b, dict):
                 # name every recipe field that differs (in the recipe's own order), so a
                 # field that selects a kind of recipe is named beside what follows from it
-                diff = [f for f in {**a, **b} if a.get(f) != b.get(f)]
-                return "; ".join(
-                    f"recipe field {f!r} ({a.get(f)!r} there, {b.get(f)!r} asked)" for f in diff
-                )
+                return "recipe " + recipe_difference(a, b).replace("; field", "; recipe field")
             return key
     return None
 
 
-@contextlib.contextmanager
 def _lock(directory: Path):
-    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise DatasetError(
-                str(directory), "another generation is writing to this directory"
-            ) from None
-        yield
-    finally:
-        os.close(fd)
+    """The folder's writer lock (:func:`scenarios.files.output_lock`)."""
+    return output_lock(directory, "generation")
 
 
 @contextlib.contextmanager
@@ -602,38 +800,13 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     """``path`` as a directory to create or reuse; :class:`DatasetError` if it cannot be one.
 
     Refuses an existing file at ``path`` and a path whose nearest existing ancestor is a
-    file (``--out notes.txt/run``), before anything is written.
+    file (``--out notes.txt/run``), before anything is written
+    (:func:`scenarios.files.check_output_dir`).
     """
-    p = Path(path)
-    for a in (p, *p.parents):
-        if a.exists() or a.is_symlink():
-            if not a.is_dir():
-                if a == p:
-                    raise DatasetError(str(p), "exists and is not a directory")
-                raise DatasetError(str(p), f"cannot create a directory here: {a} is a file")
-            break
-    return p
-
-
-@contextlib.contextmanager
-def sigterm_as_interrupt():
-    """Within the block, SIGTERM raises :class:`KeyboardInterrupt` like SIGINT (main thread only).
-
-    Commands that write results use it so that ``kill PID`` shuts down as Ctrl-C does:
-    finished shards and checkpoints are kept and the worker processes are stopped.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
+        return _check_output_dir(path)
+    except OutputError as e:
+        raise DatasetError(e.path, e.reason) from None
 
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -798,7 +971,7 @@ def generate(
             str(d),
             "exists, is not empty and holds no manifest.json; choose a new or empty directory",
         )
-    d.mkdir(parents=True, exist_ok=True)
+    ensure_dir(d)
     schema = scenario.schema()
     with _lock(d):
         new = _new_manifest(scenario, int(seed))
@@ -816,6 +989,7 @@ def generate(
         for tmp in d.glob(".*.tmp"):
             tmp.unlink()
         planned = _planned(m)
+        identity = dataset_digest(m)
         kept = []
         for name in list(m["shards"]):
             f = d / name
@@ -823,6 +997,7 @@ def generate(
                 name not in planned
                 or not f.is_file()
                 or sha256_file(f) != m["shards"][name]["sha256"]
+                or not _shard_fits(f, name, m, planned[name])
             ):
                 del m["shards"][name]
             else:
@@ -871,6 +1046,8 @@ def generate(
                         sunits,
                         schema,
                         [results.pop(u) for u in sunits],
+                        dataset=identity,
+                        seed=m["seed"],
                     )
                     m["shards"][name] = {
                         "split": planned[name]["split"],
@@ -899,6 +1076,17 @@ def generate(
             time.perf_counter() - t0,
             secs,
         )
+
+
+def _shard_fits(path: Path, name: str, m: dict, plan: dict) -> bool:
+    """Whether a finished shard is this dataset's (:func:`shard_problems` finds nothing)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h:
+            return not shard_problems(h, name, m, plan)
+    except (OSError, ValueError, TypeError, KeyError):
+        return False
 
 
 def _recount(m: dict, planned: dict) -> None:
@@ -934,38 +1122,31 @@ class VerifyReport:
 def verify(directory: str | os.PathLike, checksums: bool = True) -> VerifyReport:
     """Check a dataset: manifest, completeness, checksums, shapes, counts, disjoint splits.
 
-    Raises :class:`DatasetError` only when the manifest itself is missing, unreadable or
-    malformed (:func:`check_manifest`); every other problem becomes one line of
-    :attr:`VerifyReport.problems`.
+    The manifest must agree with the plan of its own splits (:func:`plan_problems`: each
+    shard listed in exactly its own split, with the planned units), and every shard file
+    with the manifest (:func:`shard_problems`: the dataset it belongs to, its split and
+    units, the shape and dtype of every field). Raises :class:`DatasetError` only when the
+    manifest itself is missing, unreadable or malformed (:func:`check_manifest`); every
+    other problem becomes one line of :attr:`VerifyReport.problems`.
     """
     import h5py
 
     d = Path(directory)
     m = read_manifest(d)
-    problems: list[str] = []
+    problems = [f"{where}: {msg}" for where, msg in plan_problems(m)]
     planned = _planned(m)
-    seen: dict[int, str] = {}
-    for s in SPLITS:
-        for u in m["splits"][s]["units"]:
-            if u in seen:
-                problems.append(f"splits.{s}: unit {u} is also in split {seen[u]}")
-            seen[u] = s
-    if sorted(seen) != list(range(m["n_units"])):
-        problems.append(f"splits: units do not cover 0..{m['n_units'] - 1} exactly once")
     if not m["complete"]:
         missing = [n for n in planned if n not in m["shards"]]
         problems.append(
             f"manifest.complete: generation unfinished, {len(missing)} shard(s) missing (run generate again to resume)"
         )
-    schema = {k: FieldSpec(tuple(v["shape"]), v["dtype"]) for k, v in m["schema"].items()}
     counts = {s: 0 for s in SPLITS}
     for name, info in m["shards"].items():
         f = d / name
         if name not in planned:
-            problems.append(f"shards[{name!r}]: not a planned shard")
-            continue
+            continue  # reported by plan_problems
         # a bad file is reported once; its manifest count stands in for the totals below
-        counts[info["split"]] += info["samples"]
+        counts[planned[name]["split"]] += info["samples"]
         if not f.is_file():
             problems.append(f"{name}: file missing")
             continue
@@ -974,25 +1155,15 @@ def verify(directory: str | os.PathLike, checksums: bool = True) -> VerifyReport
             continue
         try:
             with h5py.File(f, "r") as h:
-                units = h.attrs["units"].tolist()
-                if units != planned[name]["units"] or h.attrs["split"] != planned[name]["split"]:
-                    problems.append(f"{name}: units/split attributes differ from the manifest")
-                for k, fs in schema.items():
-                    if k not in h:
-                        problems.append(f"{name}.{k}: field missing")
-                        continue
-                    ds = h[k]
-                    if ds.shape != (info["samples"], *fs.shape) or ds.dtype != np.dtype(fs.dtype):
-                        problems.append(
-                            f"{name}.{k}: shape {ds.shape} {ds.dtype}, manifest says "
-                            f"({info['samples']}, {', '.join(map(str, fs.shape))}) {fs.dtype}"
-                        )
-                if "main_game" in h and info["samples"]:
+                found = shard_problems(h, name, m, planned[name])
+                problems += [f"{where}: {msg}" for where, msg in found]
+                units = planned[name]["units"]
+                if not found and "main_game" in h and info["samples"]:
                     ids = set(np.unique(h["main_game"][()]).tolist())
                     if not ids <= set(units):
                         problems.append(f"{name}.main_game: samples from units outside this shard")
-        except OSError as e:
-            problems.append(f"{name}: unreadable HDF5 file ({e})")
+        except (OSError, ValueError, TypeError, KeyError) as e:
+            problems.append(f"{name}: unreadable HDF5 file ({type(e).__name__}: {e})")
     for s in SPLITS:
         if counts[s] != m["counts"].get(s):
             problems.append(
@@ -1007,6 +1178,11 @@ def verify(directory: str | os.PathLike, checksums: bool = True) -> VerifyReport
 def _check_split(m: dict, split: str) -> None:
     if split not in SPLITS:
         raise SpecError("split", f"expected one of {list(SPLITS)}, got {split!r}")
+    for where, msg in plan_problems(m)[:1]:
+        raise DatasetError(
+            f"{MANIFEST}.{where}",
+            f"{msg}; the manifest was changed or damaged (epo data verify lists every problem)",
+        )
     if not m["complete"]:
         missing = [n for n in m["splits"][split]["shards"] if n not in m["shards"]]
         if missing:
@@ -1023,24 +1199,61 @@ def _check_split(m: dict, split: str) -> None:
             )
 
 
+def _index_error(bad: int, n: int, split: str) -> SpecError:
+    return SpecError(
+        "index",
+        f"expected an index in [0, {n}) for split {split!r}"
+        f"{' (negative indices are not accepted)' if bad < 0 else ''}, got {short_repr(bad)}",
+    )
+
+
 def check_indices(idx: np.ndarray, n: int, split: str) -> None:
     """Refuse sample indices outside ``[0, n)`` (negatives too) with one :class:`SpecError`."""
     if idx.size and (idx.min() < 0 or idx.max() >= n):
-        bad = int(idx[(idx < 0) | (idx >= n)][0])
+        raise _index_error(int(idx[(idx < 0) | (idx >= n)][0]), n, split)
+
+
+def check_index(i: Any, n: int, split: str) -> int:
+    """One sample index as an ``int`` in ``[0, n)``; :class:`SpecError` otherwise (a
+    non-integer, a negative, or any size of integer past the end: never an overflow)."""
+    if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
+        raise SpecError("index", f"expected an integer, got {short_repr(i)}")
+    i = int(i)
+    if not 0 <= i < n:
+        raise _index_error(i, n, split)
+    return i
+
+
+def as_indices(indices: Any, n: int, split: str) -> np.ndarray:
+    """Sample indices (an integer sequence or array) as an int64 array, each in ``[0, n)``.
+
+    :class:`SpecError` for indices out of range and for values that are no int64 integers
+    (an integer too large for int64 is refused, never an ``OverflowError``).
+    """
+    try:
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    except (OverflowError, TypeError, ValueError):
         raise SpecError(
             "index",
-            f"expected an index in [0, {n}) for split {split!r}"
-            f"{' (negative indices are not accepted)' if bad < 0 else ''}, got {bad}",
-        )
+            f"expected integer indices in [0, {n}) for split {split!r}, got {short_repr(indices)}",
+        ) from None
+    check_indices(idx, n, split)
+    return idx
 
 
 class SplitReader:
     """Random access to one split without loading it: ``len``, ``reader[i]``, ``reader.read(idx)``.
 
     Shard files are opened on first use and kept open; use as a context manager or call
-    :meth:`close`. Opening a shard checks its sha256 against the manifest once per file
-    version (:func:`check_shard`). Indices are ``0 .. len - 1``; negative indices are
-    refused (the index names a sample in figures and messages, so it has one spelling). ``reader[i]`` is a dict of per-sample arrays (no sample axis);
+    :meth:`close`. The manifest must agree with the plan of its splits
+    (:func:`plan_problems`: a shard listed in another split than its own is refused,
+    naming the shard and both splits). Opening a shard checks its sha256 against the
+    manifest once per file version (:func:`check_shard`), then that it belongs to this
+    dataset, split and units and that its fields have the manifest's shapes
+    (:func:`shard_problems`); a failed check is one :class:`DatasetError` naming the shard.
+    Indices are ``0 .. len - 1``; negative indices and indices past the end (of any
+    size) are refused (the index names a sample in figures and messages, so it has one
+    spelling). ``reader[i]`` is a dict of per-sample arrays (no sample axis);
     :meth:`read` takes an index array (any order, repeats allowed) and returns a batch.
     """
 
@@ -1063,6 +1276,7 @@ class SplitReader:
                 )
         self.fields = names
         self.shards = [n for n in m["splits"][split]["shards"]]
+        self._plan = _planned(m)
         sizes = [m["shards"][n]["samples"] for n in self.shards]
         self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         self._files: dict[str, Any] = {}
@@ -1077,9 +1291,25 @@ class SplitReader:
             path = self.directory / name
             check_shard(path, self.manifest["shards"][name]["sha256"])
             try:
-                self._files[name] = h5py.File(path, "r")
+                h = h5py.File(path, "r")
             except (OSError, FileNotFoundError) as e:
                 raise DatasetError(str(path), f"cannot open shard ({e})") from None
+            try:
+                found = shard_problems(h, name, self.manifest, self._plan[name])
+            except (OSError, ValueError, TypeError, KeyError) as e:
+                h.close()
+                msg = str(e).strip().splitlines()[0][:120] if str(e).strip() else ""
+                raise DatasetError(
+                    str(path), f"unreadable shard ({type(e).__name__}: {msg})"
+                ) from None
+            except BaseException:
+                h.close()
+                raise
+            if found:
+                h.close()
+                where, msg = found[0]
+                raise DatasetError(str(self.directory / where), msg)
+            self._files[name] = h
         return self._files[name]
 
     def _locate(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1088,16 +1318,14 @@ class SplitReader:
         return shard, idx - self.offsets[shard]
 
     def __getitem__(self, i: int) -> dict[str, np.ndarray]:
-        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
-            raise SpecError("index", f"expected an integer, got {i!r}")
-        b = self.read(np.array([int(i)]))
+        b = self.read(np.array([check_index(i, len(self), self.split)]))
         return {k: v[0] for k, v in b.items()}
 
     def read(self, indices) -> dict[str, np.ndarray]:
         """Batch of samples ``indices`` (int array or slice) as dict of ``(B, *shape)`` arrays."""
         if isinstance(indices, slice):
             indices = np.arange(len(self))[indices]
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        idx = as_indices(indices, len(self), self.split)
         shard, local = self._locate(idx)
         out = {
             k: np.empty((idx.size, *self.schema[k].shape), np.dtype(self.schema[k].dtype))

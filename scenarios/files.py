@@ -34,6 +34,10 @@ __all__ = [
     "usable_cores",
     "BusyError",
     "RECIPE",
+    "check_input_file",
+    "check_output_file",
+    "NAME_MAX",
+    "MAX_INPUT_BYTES",
 ]
 
 _UMASK = os.umask(0)  # read once at import: new files get the usual mode, not 0600
@@ -62,6 +66,40 @@ def ensure_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+#: longest file or folder name (bytes) of the usual file systems (Linux NAME_MAX)
+NAME_MAX = 255
+
+
+def check_output_file(path: str | os.PathLike | None, option: str) -> Path | None:
+    """Refuse, before any work, an output file that cannot be written (``None`` passes).
+
+    One :class:`OutputError` for a folder at ``path``, a path through a file or a dangling
+    link, a name longer than :data:`NAME_MAX` bytes, or a folder that cannot be written
+    (read-only, no permission); the file itself is written later with
+    :func:`write_atomic`, which reports anything else (a full disk).
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    for part in path.parts:  # first: stat() of a name too long fails
+        n = len(os.fsencode(part))
+        if n > NAME_MAX:
+            raise OutputError(
+                path, f"a name of {n} bytes is longer than the {NAME_MAX} file systems take"
+            )
+    if path.is_dir():
+        raise OutputError(path, f"{option} names a folder, expected a file")
+    near = path.parent  # the nearest folder that exists: the one to create or write in
+    while not (near.exists() or near.is_symlink()) and near != near.parent:
+        near = near.parent
+    if not near.is_dir():  # a path through a file (or a dangling link)
+        what = "a dangling link" if not near.exists() else "a file"
+        raise OutputError(path, f"{near} is {what}, not a folder")
+    if not os.access(near, os.W_OK | os.X_OK):
+        raise OutputError(path, f"the folder {near} cannot be written (read-only or no permission)")
+    return path
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str | Callable[[BinaryIO], None]) -> Path:
     """Write ``data`` (bytes, text as UTF-8, or a function writing to a binary file) to
     ``path`` atomically; create missing parent folders. Returns ``path``."""
@@ -70,7 +108,8 @@ def write_atomic(path: str | os.PathLike, data: bytes | str | Callable[[BinaryIO
         raise OutputError(path, "it is a folder")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        # the temporary name stays within NAME_MAX for any valid target name
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name[:100]}.", suffix=".tmp")
     except OSError as e:
         raise OutputError(path, _reason(e, path)) from None
     try:
@@ -243,3 +282,37 @@ def sigterm_as_interrupt():
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+#: the largest input file read whole into memory by default (game files, manifests, configs)
+MAX_INPUT_BYTES = 64 * 2**20
+
+
+def check_input_file(
+    path: str | os.PathLike, field: str = "file", max_bytes: int | None = MAX_INPUT_BYTES
+) -> Path:
+    """``path`` if it is a regular file of at most ``max_bytes`` bytes, else :class:`SpecError`.
+
+    The one check in front of every reader of a user's file: a missing path, a folder, a
+    named pipe or a device (``/dev/zero`` would be read forever, a pipe blocks) and a file too
+    large to read whole are refused in one line naming ``field`` and the path.
+    """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        why = "is a dangling link" if p.is_symlink() else "does not exist"
+        raise SpecError(field, f"{p} {why}") from None
+    except OSError as e:
+        raise SpecError(field, f"{p}: {e.strerror or type(e).__name__}") from None
+    import stat as _stat
+
+    if _stat.S_ISDIR(st.st_mode):
+        raise SpecError(field, f"{p} is a folder, expected a file")
+    if not _stat.S_ISREG(st.st_mode):
+        raise SpecError(field, f"{p} is not a regular file (a pipe, socket or device)")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise SpecError(
+            field, f"{p} has {st.st_size:,} bytes, over the limit of {max_bytes:,} for this file"
+        )
+    return p

@@ -1,8 +1,11 @@
 """``epo data``: check and look at a generated dataset.
 
 ``epo data verify DIR`` checks the manifest, completeness, sha256 checksums, shapes,
-counts and that no work unit (main game) is in two splits; ``epo data show DIR --split
-test --index I --out fig.png`` draws one sample: history, the predicted modes, goals.
+counts, that no work unit (main game) is in two splits, that every shard is listed in
+exactly its own split and that every shard file belongs to this dataset, split and units
+(:func:`scenarios.dataset.verify`); ``epo data show DIR --split test --index I --out
+fig.png`` draws one sample: history, the predicted modes, goals. The figure is written
+atomically (:func:`scenarios.plotting.save_figure`): an unwritable folder is one ``cannot write`` line.
 """
 
 from __future__ import annotations
@@ -52,12 +55,21 @@ def verify_cmd(directory: Path, no_checksums: bool):
     show_default=True,
 )
 def show_cmd(directory: Path, split: str, index: int, out: Path):
-    """Draw one sample (history, modes, goals) to a PNG."""
-    from scenarios.dataset import SplitReader
+    """Draw one sample (history, modes, goals) to a PNG (or another image format by
+    the suffix of --out); the figure is written atomically."""
+    from scenarios.dataset import MANIFEST, DatasetError, SplitReader
+    from scenarios.plotting import check_image_path
 
+    check_image_path(out, "--out")  # before any reading
     with SplitReader(directory, split) as r:
         s = r[index]
         meta = r.manifest.get("meta", {})
+    missing = [k for k in ("history", "future") if k not in s]
+    if missing:
+        raise DatasetError(
+            f"{directory / MANIFEST}.schema.{missing[0]}",
+            "missing; data show draws a sample's history and future",
+        )
     plot_sample(s, out, title=f"{directory.name} {split}[{index}]", agents=meta.get("agents"))
     click.echo(f"wrote {out}")
 
@@ -116,6 +128,9 @@ def plot_sample(s: dict, out: Path, title: str = "", agents=None) -> None:
     ax.legend(fontsize=7, loc="best")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    from scenarios.plotting import save_figure
+
+    try:
+        save_figure(fig, out, "--out", dpi=100, bbox_inches="tight")
+    finally:
+        plt.close(fig)
