@@ -23,7 +23,7 @@ CMD=${1:?usage: bench/exid_tab2.sh train|eval|table [DATA] [RUNS]}
 D=${2:-data/exid}; R=${3:-runs/exid-tab2}
 E=${EPOCHS:-8}; GRID=${GRID:-"2e-4 5e-4 1e-3"}
 EPO=${EPO:-$ROOT/.venv/bin/epo}; PY=$(dirname "$EPO")/python
-mkdir -p "$R"
+die() { echo "error: $*" >&2; exit 2; }
 log() { echo "$(date -u +%H:%M:%S) $*" | tee -a "$R/queue.log"; }
 finished() { [ -f "$1/metrics.csv" ] && awk -F, -v e="$E" 'NR>1 && $1==e {f=1} END {exit !f}' "$1/metrics.csv"; }
 train() {  # name model backbone seed lr [extra args]
@@ -62,6 +62,7 @@ group() {  # model backbone grid... (extra train args in EXTRA)
 has() { case " ${MODELS:-vlstm sc epo tgl} " in *" $1 "*) return 0;; esac; return 1; }
 case $CMD in
 train)
+  mkdir -p "$R"
   log "train: data $D"
   for bb in ${BACKBONES:-vlstm vibes hivt}; do
     has vlstm && EXTRA="" group vlstm "$bb" $GRID
@@ -71,6 +72,7 @@ train)
   done
   log "train: done" ;;
 eval)
+  [ -f "$R/chosen.csv" ] || die "$R/chosen.csv: no such file (no learning rate chosen yet); run 'bench/exid_tab2.sh train $D $R' first"
   runs=()
   while IFS=, read -r g lr _; do
     [[ $g =~ ${ONLY:-.} ]] || continue
@@ -79,6 +81,7 @@ eval)
   printf '%s\n' "${runs[@]}" > "$R/eval-test.runs.txt"
   "$EPO" evaluate "${runs[@]}" --model cv --data "$D" --split test --out "$R/eval-test" --threads 1 ;;
 table)
+  [ -f "$R/eval-test/results_runs.csv" ] || die "$R/eval-test/results_runs.csv: no such file (the test split is not scored yet); run 'bench/exid_tab2.sh eval $D $R' first"
   "$PY" "$ROOT/bench/exid_tab2_table.py" "$R/eval-test" "$R/chosen.csv" ;;
 *) echo "error: expected train, eval or table, got '$CMD'" >&2; exit 2 ;;
 esac

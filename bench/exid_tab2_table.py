@@ -34,27 +34,60 @@ PAPER = {
 METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR", "OR_circle")
 
 
-def _rows(path: Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+class TableError(Exception):
+    """An input of the table is missing or malformed (printed as one ``error:`` line)."""
+
+
+def _rows(path: Path, *columns: str) -> list[dict]:
+    """The rows of a CSV file with ``columns``; :class:`TableError` if it is missing or
+    lacks one."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except FileNotFoundError:
+        hint = " (run 'bench/exid_tab2.sh eval' first)" if path.name == "results_runs.csv" else ""
+        raise TableError(f"{path}: no such file{hint}") from None
+    except (OSError, csv.Error, UnicodeDecodeError) as e:
+        raise TableError(f"{path}: unreadable ({e})") from None
+    for c in columns:
+        if rows and c not in rows[0]:
+            raise TableError(f"{path}: no column {c!r}")
+    return rows
 
 
 def main(argv: list[str]) -> int:
     if not argv or len(argv) > 2:
         print(__doc__.strip().splitlines()[2], file=sys.stderr)
         return 2
+    try:
+        return _table(argv)
+    except TableError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _val(path: Path) -> float:
+    """The best-epoch validation minSADE of a run's ``metrics.csv``."""
+    rows = _rows(path, "val_minSADE")
+    try:
+        return min(float(x["val_minSADE"]) for x in rows)
+    except ValueError as e:  # no rows, or a cell that is not a number
+        raise TableError(f"{path}: no validation minSADE ({e})") from None
+
+
+def _table(argv: list[str]) -> int:
     out = Path(argv[0])
     chosen = {}
     if len(argv) > 1 and Path(argv[1]).exists():
         with open(argv[1], newline="") as f:
-            chosen = {r[0]: r[1] for r in csv.reader(f) if r}
-    rows = _rows(out / "results_runs.csv")
+            chosen = {r[0]: r[1] for r in csv.reader(f) if len(r) >= 2}
+    rows = _rows(out / "results_runs.csv", "run", "method", *METRICS[:5])
     groups: dict[str, list[dict]] = {}
     for r in rows:
         groups.setdefault(r["method"], []).append(r)
     head = "| Method | lr | runs | " + " | ".join(METRICS) + " | val minSADE | paper |"
-    print(head.replace("OR_circle", "OR (circles)").replace("| OR |", "| OR (boxes) |"))
-    print("|---|---:|---:|" + "---:|" * (len(METRICS) + 1) + "---|")
+    lines = [head.replace("OR_circle", "OR (circles)").replace("| OR |", "| OR (boxes) |")]
+    lines.append("|---|---:|---:|" + "---:|" * (len(METRICS) + 1) + "---|")
     for method, rs in groups.items():
         lr, val = "-", []
         for r in rs:
@@ -62,15 +95,23 @@ def main(argv: list[str]) -> int:
                 continue
             name = Path(r["run"]).name
             lr = chosen.get(name.rsplit("-lr", 1)[0], "?")
-            val.append(min(float(x["val_minSADE"]) for x in _rows(Path(r["run"]) / "metrics.csv")))
-        cells = [format_mean_std([r[k] for r in rs if r.get(k) not in (None, "")]) for k in METRICS]
+            val.append(_val(Path(r["run"]) / "metrics.csv"))
+        try:
+            cells = [
+                format_mean_std([r[k] for r in rs if r.get(k) not in (None, "")]) for k in METRICS
+            ]
+        except ValueError as e:
+            raise TableError(
+                f"{out / 'results_runs.csv'}: {method}: a cell is not a number ({e})"
+            ) from None
         key = method.replace(" (goals: candidates)", "")
         n = len(rs)
-        print(
+        lines.append(
             f"| {key} | {lr} | {n} | "
             + " | ".join(cells)
             + f" | {format_mean_std(val)} | {PAPER.get(key, '-')} |"
         )
+    print("\n".join(lines))  # nothing is printed when an input is missing
     return 0
 
 

@@ -62,21 +62,43 @@ each other, bumper gaps of 2-4 m (docs/exid.md: the test map's scenes).
 
 Deterministic for a seed: recording ``i`` uses ``SeedSequence(seed, spawn_key=(i,))``;
 existing complete recordings are kept (a stopped run resumes).
+
+Output folder (:func:`generate_raw`)
+    One run at a time writes to a folder (its ``.lock``; a second run is refused at once),
+    and the folder records its recipe in ``recipe.json`` (kind ``highway-raw``: the seed
+    and every :class:`HighwayOptions` field but ``recordings``) before anything else is
+    written. A rerun with the same recipe resumes; one with another seed, duration or
+    option is refused naming the differing fields, so recordings of two recipes never mix.
+    Recording ``i`` depends only on the recipe and ``i``, so a rerun with *more*
+    ``recordings`` extends the set (the finished recordings are kept); one with fewer than
+    the folder already holds is refused. A non-empty folder without ``recipe.json`` (files
+    of something else, or of a version of epo that recorded no recipe) is refused.
+    Every file is written atomically; a recording whose files cannot all be written
+    (a full disk) leaves none of them.
+
+Limits (checked before any work; :data:`MAX_RECORDINGS`, :data:`MAX_DURATION`,
+:data:`MAX_WARMUP`, :data:`MAX_FRAMES`)
+    at most 10,000 recordings, 3,600 s recorded per recording and 600 s of warm-up, and
+    100,000 recorded frames per recording (``duration x frame_rate``: one recording is
+    held in memory until it is written).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, fields
 from pathlib import Path as FilePath
 
 import numpy as np
 
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size, short_repr
 
 from .exid import latlon_from_utm
+from .files import claim_output, ensure_dir, write_atomic
 
 __all__ = [
     "Location",
@@ -88,7 +110,21 @@ __all__ = [
     "write_map",
     "record",
     "generate_raw",
+    "raw_recipe",
+    "MAX_RECORDINGS",
+    "MAX_DURATION",
+    "MAX_WARMUP",
+    "MAX_FRAMES",
 ]
+
+#: most recordings of one raw set (file names ``NN_*.csv``)
+MAX_RECORDINGS = 10_000
+#: most recorded seconds per recording (s)
+MAX_DURATION = 3600.0
+#: most simulated warm-up seconds before frame 0 (s)
+MAX_WARMUP = 600.0
+#: most recorded frames per recording (``duration x frame_rate``; held in memory)
+MAX_FRAMES = 100_000
 
 AMPLITUDE = 3.25  # m: half the lateral offset of the sine-shaped ramp lanes
 ZONE = 32
@@ -142,23 +178,55 @@ class HighwayOptions:
 
     def __post_init__(self):
         p = "highway"
-        check_number(f"{p}.recordings", self.recordings, lo=1, integer=True)
-        locs = tuple(self.locations)
-        bad = [x for x in locs if x not in LOCATIONS]
+        object.__setattr__(
+            self,
+            "recordings",
+            check_size(f"{p}.recordings", self.recordings, MAX_RECORDINGS, "recordings of a set"),
+        )
+        locs = self.locations
+        ids = sorted(LOCATIONS)
+        if isinstance(locs, (str, bytes)) or not isinstance(locs, (list, tuple)):
+            raise SpecError(
+                f"{p}.locations",
+                f"expected a list of location ids from {ids}, e.g. [0, 2], got {short_repr(locs)}",
+            )
+        bad = [
+            x
+            for x in locs
+            if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x not in LOCATIONS
+        ]
         if not locs or bad:
             raise SpecError(
-                f"{p}.locations", f"expected ids from {sorted(LOCATIONS)}, got {list(locs)}"
+                f"{p}.locations",
+                f"expected a non-empty list of location ids from {ids}, got {short_repr(list(locs))}",
             )
         object.__setattr__(self, "locations", tuple(int(x) for x in locs))
-        check_number(f"{p}.duration", self.duration, lo=1.0)
-        check_number(f"{p}.warmup", self.warmup, lo=0.0)
+        check_number(f"{p}.duration", self.duration, lo=1.0, hi=MAX_DURATION)
+        check_number(f"{p}.warmup", self.warmup, lo=0.0, hi=MAX_WARMUP)
         check_number(f"{p}.frame_rate", self.frame_rate, lo=1.0, hi=100.0)
+        frames = int(round(self.duration * self.frame_rate))
+        check_size(
+            f"{p}.duration",
+            frames,
+            MAX_FRAMES,
+            f"recorded frames per recording, duration {self.duration:g} s x frame_rate "
+            f"{self.frame_rate:g} Hz: memory",
+        )
         for k in ("exit_share", "truck_share"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0, hi=1.0)
         for k in ("flow", "ramp_flow"):
             v = getattr(self, k)
-            if len(v) != 2 or not 0 <= v[0] <= v[1] <= 2:
-                raise SpecError(f"{p}.{k}", f"expected (low, high) in [0, 2] veh/s, got {v!r}")
+            ok = isinstance(v, (list, tuple)) and len(v) == 2
+            ok = ok and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                for x in v
+            )
+            if not ok or not 0 <= v[0] <= v[1] <= 2:
+                raise SpecError(
+                    f"{p}.{k}",
+                    f"expected [low, high] with 0 <= low <= high <= 2 veh/s, got {short_repr(v)}",
+                )
+            object.__setattr__(self, k, (float(v[0]), float(v[1])))
 
 
 # --------------------------------------------------------------------------------------
@@ -286,14 +354,7 @@ def write_map(loc: Location, path: str | os.PathLike) -> None:
         )
     out.extend(rels)
     out.append("</osm>\n")
-    _write_atomic(FilePath(path), "".join(out))
-
-
-def _write_atomic(path: FilePath, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_atomic(FilePath(path), "".join(out))
 
 
 # --------------------------------------------------------------------------------------
@@ -609,18 +670,113 @@ def _frames(rows, info, loc: Location, opts: HighwayOptions, rid: int):
     return tracks, meta, rec
 
 
+_FILES = ("tracks", "tracksMeta", "recordingMeta")  # written in this order (meta last)
+
+
 def _record_files(out: str, lid: int, opts: HighwayOptions, seed: int, i: int) -> tuple:
     """Simulate recording ``i`` at location ``lid`` and write its three CSV files atomically;
-    ``(i, tracks, rows, crashes)``. One work unit of :func:`generate_raw` (a pool worker's)."""
+    ``(i, tracks, rows, crashes)``. One work unit of :func:`generate_raw` (a pool worker's).
+    A recording whose files cannot all be written leaves none of them."""
     out = FilePath(out)
     (tracks, meta, rec), crashes = record(
         LOCATIONS[lid], opts, np.random.SeedSequence(int(seed), spawn_key=(i,)), i
     )
-    for df, n in zip((tracks, meta, rec), ("tracks", "tracksMeta", "recordingMeta"), strict=True):
-        _write_atomic(
-            out / "data" / f"{i:02d}_{n}.csv", df.to_csv(index=False, float_format="%.4f")
-        )
+    paths = [out / "data" / f"{i:02d}_{n}.csv" for n in _FILES]
+    try:
+        for df, path in zip((tracks, meta, rec), paths, strict=True):
+            write_atomic(path, df.to_csv(index=False, float_format="%.4f"))
+    except BaseException:
+        for path in paths:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        raise
     return i, len(meta), len(tracks), crashes
+
+
+def raw_recipe(opts: HighwayOptions, seed: int) -> dict:
+    """What ``recipe.json`` of a raw set records (module docstring): the seed and every
+    option but ``recordings`` (a rerun with more recordings extends the set)."""
+    d = {f.name: getattr(opts, f.name) for f in fields(opts) if f.name != "recordings"}
+    return {"seed": int(seed), **{k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}}
+
+
+_NAME = re.compile(r"(\d+)_(?:tracks|tracksMeta|recordingMeta)\.csv")
+
+
+def _held(data: FilePath) -> int:
+    """1 + the largest recording number with a file in ``data`` (0 when none)."""
+    top = -1
+    if data.is_dir():
+        for f in data.iterdir():
+            m = _NAME.fullmatch(f.name)
+            if m:
+                top = max(top, int(m.group(1)))
+    return top + 1
+
+
+def _pool(workers: int):
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from .dataset import _single_threaded_children, _worker_init
+
+    with _single_threaded_children():
+        return ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_worker_init,
+            initargs=(os.getpid(),),
+        )
+
+
+def _run_pool(units, workers: int):
+    """Results of ``_record_files(*u)`` for the lazy ``units``, ``workers`` at a time in
+    worker processes (a bounded window in flight). Interrupted or failed: the recordings
+    in flight are stopped at once (their files are never half-written) and the pool is
+    shut down before the exception goes on, so no process or semaphore outlives it."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    ex = _pool(workers)
+    finished = False
+    flight: dict = {}  # future -> its unit
+    try:
+        for u in units:
+            flight[ex.submit(_record_files, *u)] = u
+            if len(flight) >= 2 * workers:
+                break
+        while flight:
+            done, _ = wait(set(flight), return_when=FIRST_COMPLETED)
+            for f in done:
+                res = f.result()
+                del flight[f]
+                yield res
+                nxt = next(units, None)
+                if nxt is not None:
+                    flight[ex.submit(_record_files, *nxt)] = nxt
+        finished = True
+    finally:
+        if not finished:
+            procs = list((getattr(ex, "_processes", None) or {}).values())
+            ex.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.terminate()
+            for proc in procs:
+                with contextlib.suppress(Exception):
+                    proc.join(timeout=5)
+            for out, _, _, _, i in flight.values():  # stopped while writing: no part stays
+                _discard_partial(FilePath(out), i)
+        ex.shutdown(wait=True, cancel_futures=True)
+
+
+def _discard_partial(out: FilePath, i: int) -> None:
+    """Remove the files of recording ``i`` unless all three are there (and temporaries)."""
+    data = out / "data"
+    if all((data / f"{i:02d}_{n}.csv").is_file() for n in _FILES):
+        return
+    for f in [*data.glob(f"{i:02d}_*.csv"), *data.glob(f".{i:02d}_*.tmp")]:
+        with contextlib.suppress(OSError):
+            f.unlink()
 
 
 def generate_raw(
@@ -634,66 +790,69 @@ def generate_raw(
     recordings ``0 .. recordings - 1`` (existing complete ones are kept). ``workers`` > 1
     simulates that many recordings at a time in worker processes (the files are the same:
     recording ``i`` depends only on ``seed`` and ``i``; each is written atomically, so an
-    interrupted run keeps every finished recording). Returns counts: ``recordings``,
-    ``written``, ``tracks``, ``rows``, ``crashes``, ``seconds``."""
+    interrupted run keeps every finished recording). The folder is locked for the whole
+    run and records its recipe (:func:`raw_recipe`; module docstring, "Output folder"):
+    a run with another recipe, or a second run at the same time, is refused
+    (:class:`~epo_casadi.errors.SpecError`, :class:`scenarios.files.BusyError`). Returns
+    counts: ``recordings``, ``written``, ``tracks``, ``rows``, ``crashes``, ``seconds``."""
     import time
 
+    if not isinstance(opts, HighwayOptions):
+        raise SpecError("opts", f"expected HighwayOptions, got {type(opts).__name__}")
     check_number("seed", seed, lo=0, integer=True)
     check_number("workers", workers, lo=1, integer=True)
     t0 = time.perf_counter()
-    out = FilePath(out)
-    (out / "data").mkdir(parents=True, exist_ok=True)
-    for lid in sorted(set(opts.locations)):
-        loc = LOCATIONS[lid]
-        write_map(loc, out / "maps" / "lanelet2" / f"{lid}_{loc.name}.osm")
+    with claim_output(out, "highway-raw", raw_recipe(opts, seed), what="epo generate highway-raw"):
+        out = FilePath(out)
+        held = _held(out / "data")
+        if held > opts.recordings:
+            raise SpecError(
+                "recordings",
+                f"{out} already holds recordings 0 .. {held - 1}; ask for {held} or more to "
+                f"resume or extend the set (got {opts.recordings}), or use another folder",
+            )
+        ensure_dir(out / "data")
+        for tmp in [*out.glob("data/.*.tmp"), *out.glob("maps/lanelet2/.*.tmp")]:
+            with contextlib.suppress(OSError):  # left by a killed run (we hold the lock)
+                tmp.unlink()
+        for lid in sorted(set(opts.locations)):
+            loc = LOCATIONS[lid]
+            write_map(loc, out / "maps" / "lanelet2" / f"{lid}_{loc.name}.osm")
 
-    def complete(i: int) -> bool:
-        names = ("tracks", "tracksMeta", "recordingMeta")
-        return all((out / "data" / f"{i:02d}_{n}.csv").is_file() for n in names)
+        def complete(i: int) -> bool:
+            return all((out / "data" / f"{i:02d}_{n}.csv").is_file() for n in _FILES)
 
-    todo = [i for i in range(opts.recordings) if not complete(i)]
-    units = [(str(out), opts.locations[i % len(opts.locations)], opts, int(seed), i) for i in todo]
-    bar = None
-    if progress:
-        from tqdm import tqdm
+        n_done = sum(1 for i in range(opts.recordings) if complete(i))
+        n_todo = opts.recordings - n_done
+        units = (
+            (str(out), opts.locations[i % len(opts.locations)], opts, int(seed), i)
+            for i in range(opts.recordings)
+            if not complete(i)
+        )
+        bar = None
+        if progress:
+            from tqdm import tqdm
 
-        bar = tqdm(total=opts.recordings, unit="recording", desc=f"highway -> {out}")
-        bar.update(opts.recordings - len(todo))
-    stats = dict(recordings=opts.recordings, written=0, tracks=0, rows=0, crashes=0)
-
-    def count(res: tuple) -> None:
-        _, n_tracks, n_rows, crashes = res
-        stats["written"] += 1
-        stats["tracks"] += n_tracks
-        stats["rows"] += n_rows
-        stats["crashes"] += crashes
-        if bar is not None:
-            bar.update(1)
-
-    try:
-        if workers <= 1 or len(units) <= 1:
-            for u in units:
-                count(_record_files(*u))
-        else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            from .dataset import _single_threaded_children, _worker_init
-
-            with _single_threaded_children():
-                ex = ProcessPoolExecutor(
-                    max_workers=min(workers, len(units)),
-                    mp_context=mp.get_context("spawn"),
-                    initializer=_worker_init,
-                    initargs=(os.getpid(),),
-                )
+            bar = tqdm(total=opts.recordings, unit="recording", desc=f"highway -> {out}")
+            bar.update(n_done)
+        stats = dict(recordings=opts.recordings, written=0, tracks=0, rows=0, crashes=0)
+        try:
+            if workers <= 1 or n_todo <= 1:
+                results = (_record_files(*u) for u in units)
+            else:
+                results = _run_pool(units, min(workers, n_todo))
             try:
-                for f in as_completed([ex.submit(_record_files, *u) for u in units]):
-                    count(f.result())
-            finally:  # interrupted or failed: nothing half-written stays (atomic files)
-                ex.shutdown(wait=True, cancel_futures=True)
-    finally:
-        if bar is not None:
-            bar.close()
+                for _, n_tracks, n_rows, crashes in results:
+                    stats["written"] += 1
+                    stats["tracks"] += n_tracks
+                    stats["rows"] += n_rows
+                    stats["crashes"] += crashes
+                    if bar is not None:
+                        bar.update(1)
+            finally:
+                results.close()  # stops the pool now, also after an interrupt
+        finally:
+            if bar is not None:
+                bar.close()
     stats["seconds"] = time.perf_counter() - t0
     return stats

@@ -82,6 +82,13 @@ Augmentation (training only, App. E)
     matches the paper's counts (1836 train samples from five episodes, against 361 val
     from five: about 1 + 4 samples per original). Val and test samples are never augmented.
 
+Limits (checked when a recipe is made, before any work)
+    every count and size at most its :data:`SIZE_LIMITS` entry (``episodes_per_geometry``
+    100,000, ``history`` and ``horizon`` 1,000, ``episode_steps`` 10,000,
+    ``augment_copies`` 100, ...), and the samples of one shard at most
+    :data:`MAX_SHARD_BYTES` (2 GiB, estimated from the sizes: a shard is held in memory
+    until it is written).
+
 Game (App. F.3, CARLA): per agent ``lane`` (:class:`~epo_casadi.features.Path`, the
 ``paths`` polyline as parameter), ``vref`` (:class:`~epo_casadi.features.ReferenceVelocity`,
 ``vref`` as parameter), velocity, acceleration, jerk, turn rate, turn acceleration, plus a
@@ -115,7 +122,7 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 
 from .dataset import SPLITS, FieldSpec, Scenario
 
@@ -126,7 +133,29 @@ __all__ = [
     "OUTCOMES",
     "to_frame",
     "rotate_sample",
+    "MAX_EPISODES_PER_GEOMETRY",
+    "SIZE_LIMITS",
+    "MAX_SHARD_BYTES",
 ]
+
+#: most episodes (work units) per geometry (the paper has 5)
+MAX_EPISODES_PER_GEOMETRY = 100_000
+#: upper bounds of the recipe's counts and sizes, checked before any work (each one is
+#: far above what a dataset needs; a larger value is refused, not misread)
+SIZE_LIMITS: dict[str, int] = {
+    "episodes_per_geometry": MAX_EPISODES_PER_GEOMETRY,
+    "episodes_per_shard": 10_000,
+    "history": 1_000,
+    "horizon": 1_000,
+    "episode_steps": 10_000,
+    "replay_extra": 10_000,
+    "lane_points": 10_000,
+    "goal_points": 10_000,
+    "augment_copies": 100,
+    "max_tries": 1_000,
+}
+#: most bytes of the samples of one shard (held in memory until the shard is written)
+MAX_SHARD_BYTES = 2 * 2**30
 
 AGENTS = ("sdv", "other")
 #: mode slots: the SDV enters the conflict zone first / the oncoming vehicle does
@@ -208,8 +237,10 @@ class LeftTurnRecipe:
             ("goal_points", 2),
             ("augment_copies", 0),
             ("max_tries", 1),
+            ("episode_steps", 2),
         ):
-            check_number(f"{p}.{k}", getattr(self, k), lo=lo, integer=True)
+            v = check_size(f"{p}.{k}", getattr(self, k), SIZE_LIMITS[k], "recipe size", lo=lo)
+            object.__setattr__(self, k, v)
         check_number(f"{p}.episode_steps", self.episode_steps, lo=self.horizon, integer=True)
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=1.0)
         check_number(f"{p}.p_enter", self.p_enter, lo=0.0, hi=1.0)
@@ -221,6 +252,25 @@ class LeftTurnRecipe:
         for f in fields(self):
             if f.name.startswith("w_"):
                 check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+        shard = min(self.episodes_per_shard, self.episodes_per_geometry * len(self.geometries))
+        check_size(
+            p,
+            shard * self.samples_per_episode_max() * self.sample_bytes(),
+            MAX_SHARD_BYTES,
+            f"bytes of one shard's samples, held in memory: {shard} episodes "
+            f"(episodes_per_shard) x {self.samples_per_episode_max():,} samples (episode_steps, "
+            f"horizon, augment_copies) x {self.sample_bytes():,} bytes (history, horizon, "
+            "lane_points, goal_points)",
+        )
+
+    def sample_bytes(self) -> int:
+        """Bytes of one sample (the arrays of :meth:`LeftTurnScenario.schema`, about)."""
+        H, T, P, G = self.history, self.horizon, self.lane_points, self.goal_points
+        return (H + 1) * 33 + 2 * 2 * T * 16 + 2 * 2 * P * 8 + 2 * G * 8 + 256
+
+    def samples_per_episode_max(self) -> int:
+        """Samples of one train episode: one per step with a full future, plus the copies."""
+        return (self.episode_steps - self.horizon + 1) * (1 + self.augment_copies)
 
     @property
     def geometries(self) -> tuple[str, ...]:

@@ -67,6 +67,14 @@ Sample count
     the order of the sample count instead: :meth:`RPIRecipe.full` has 2,000 main games
     (about 58k samples), :meth:`RPIRecipe.for_samples` scales the number of main games.
 
+Limits (checked when a recipe is made, before any work)
+    ``for_samples`` at most :data:`MAX_SAMPLES` (10 million) samples; every count and size
+    of the recipe at most its :data:`SIZE_LIMITS` entry (``main_games`` 1,000,000,
+    ``horizon``, ``history`` and ``game_horizon`` 1,000, ``modes`` 8, ``n_samples`` and
+    ``sub_samples`` 10,000, ...); and the samples of one shard at most
+    :data:`MAX_SHARD_BYTES` (2 GiB, estimated from the sizes: a shard is held in memory
+    until it is written).
+
 Fields of one sample (``N = 2`` agents, ``nx = 4``, ``nu = 2``, ``H = 18``, ``M = 2``,
 ``T = 40``; see :meth:`RPIScenario.schema`)::
 
@@ -109,7 +117,7 @@ from epo_casadi import (
     Velocity,
     VelocityBound,
 )
-from epo_casadi.errors import SpecError, check_number
+from epo_casadi.errors import SpecError, check_number, check_size
 
 from .dataset import FieldSpec, Scenario
 
@@ -121,7 +129,30 @@ __all__ = [
     "GROUND_TRUTHS",
     "SAMPLES_PER_GAME",
     "SAMPLES_PER_GAME_BY_TRUTH",
+    "MAX_SAMPLES",
+    "SIZE_LIMITS",
+    "MAX_SHARD_BYTES",
 ]
+
+#: most samples :meth:`RPIRecipe.for_samples` (``epo generate rpi --samples``) asks for
+MAX_SAMPLES = 10_000_000
+#: upper bounds of the recipe's counts and sizes, checked before any work (each one is
+#: far above what a dataset needs; a larger value is refused, not misread)
+SIZE_LIMITS: dict[str, int] = {
+    "main_games": 1_000_000,
+    "games_per_shard": 10_000,
+    "horizon": 1_000,
+    "history": 1_000,
+    "modes": 8,
+    "n_samples": 10_000,
+    "max_iter": 100_000,
+    "max_subgames": 10_000,
+    "game_horizon": 1_000,
+    "sub_samples": 10_000,
+    "dbscan_min_points": 10_000,
+}
+#: most bytes of the samples of one shard (held in memory until the shard is written)
+MAX_SHARD_BYTES = 2 * 2**30
 
 #: measured mean samples per main game of the potential recipe (docs/rpi.md)
 SAMPLES_PER_GAME = 30.0
@@ -251,7 +282,7 @@ class RPIRecipe:
     ilq_tol: float | None = None  #: iLQ stops (converged) at max |a| <= this [1e-2]
 
     def __post_init__(self):
-        if self.ground_truth not in GROUND_TRUTHS:
+        if not isinstance(self.ground_truth, str) or self.ground_truth not in GROUND_TRUTHS:
             raise SpecError(
                 "rpi.ground_truth",
                 f"expected one of {list(GROUND_TRUTHS)}, got {self.ground_truth!r}",
@@ -267,6 +298,7 @@ class RPIRecipe:
                 )
             if peters and getattr(self, k) is None:
                 object.__setattr__(self, k, v)
+        self._check_sizes()
         if peters:
             self._check_peters()
         _num("main_games", self.main_games, 3, integer=True)
@@ -309,6 +341,41 @@ class RPIRecipe:
                 "rpi.split", f"expected three fractions > 0 summing to 1, got {self.split!r}"
             )
         object.__setattr__(self, "split", sp)
+        self._check_shard_bytes()
+
+    def _check_sizes(self):
+        """Every count and size at most its :data:`SIZE_LIMITS` entry (before any work)."""
+        for k, limit in SIZE_LIMITS.items():
+            v = getattr(self, k)
+            if v is None:  # max_subgames: no cap; Peters fields of a potential recipe
+                continue
+            lo = {"main_games": 3, "horizon": 2, "history": 0}.get(k, 1)
+            object.__setattr__(self, k, check_size(f"rpi.{k}", v, limit, "recipe size", lo=lo))
+
+    def sample_bytes(self) -> int:
+        """Bytes of one sample (the arrays of :meth:`RPIScenario.schema`; ``params``
+        estimated at 64 values)."""
+        H, M, T = self.history, self.modes, self.horizon
+        return (H + 1) * 2 * 4 * 4 + (H + 1) + M * 2 * T * 6 * 4 + M * 5 + 2 * 2 * 4 + 64 * 8 + 20
+
+    def samples_per_game_max(self) -> int:
+        """Most samples one main game can give: one per executed main mode and subgame."""
+        steps = self.game_horizon if self.ground_truth == "peters" else self.horizon
+        if self.max_subgames is not None:
+            steps = min(steps, self.max_subgames)
+        return self.modes * steps
+
+    def _check_shard_bytes(self):
+        per = self.sample_bytes() * self.samples_per_game_max()
+        shard = min(self.games_per_shard, self.main_games)
+        check_size(
+            "rpi",
+            per * shard,
+            MAX_SHARD_BYTES,
+            f"bytes of one shard's samples, held in memory: {shard} main games "
+            f"(games_per_shard) x {self.samples_per_game_max():,} samples (modes x subgames) "
+            f"x {self.sample_bytes():,} bytes (history, modes, horizon)",
+        )
 
     def _check_peters(self):
         _num("game_horizon", self.game_horizon, self.horizon, integer=True)
@@ -349,13 +416,12 @@ class RPIRecipe:
     def for_samples(cls, samples: int, **overrides) -> RPIRecipe:
         """About ``samples`` samples: ``ceil(samples / per)`` main games (at least 3), ``per``
         the measured samples per main game of the ground truth (:data:`SAMPLES_PER_GAME_BY_TRUTH`:
-        potential 30, Peters 70).
+        potential 30, Peters 70); at most :data:`MAX_SAMPLES`.
 
         The exact count depends on the games (see the module docstring); the manifest
         records it. Shards shrink so that a small set still has a few per split.
         """
-        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-            raise SpecError("samples", f"expected an integer >= 1, got {samples!r}")
+        samples = check_size("samples", samples, MAX_SAMPLES, "samples of one dataset")
         truth = overrides.get("ground_truth", "peters")
         per = SAMPLES_PER_GAME_BY_TRUTH.get(truth, SAMPLES_PER_GAME)
         games = max(3, math.ceil(samples / per))

@@ -101,3 +101,46 @@ awk -v e="$e" -v v="$v" 'BEGIN {for (i = 1; i <= e; i++) print i "," v + (i == 2
     ev = (tmp_path / "bin" / "calls.txt").read_text().splitlines()[-1].split()
     assert ev[0] == "evaluate" and ev[ev.index("--model") + 1] == "cv"
     assert sorted(Path(a).name for a in ev[1:4]) == [f"sc-vibes-lr5e-4-s{s}" for s in range(3)]
+
+
+def _driver(cmd: str, runs: Path, tmp_path: Path) -> subprocess.CompletedProcess:
+    """``bench/exid_tab2.sh CMD data RUNS`` with the test's Python as the driver's."""
+    bin_ = tmp_path / "bin"
+    bin_.mkdir(exist_ok=True)
+    if not (bin_ / "python").exists():
+        (bin_ / "python").symlink_to(sys.executable)
+    env = {"PATH": "/usr/bin:/bin", "EPO": str(bin_ / "epo")}
+    script = str(ROOT / "bench" / "exid_tab2.sh")
+    return subprocess.run(
+        ["bash", script, cmd, "data", str(runs)], capture_output=True, text=True, env=env
+    )
+
+
+def test_driver_table_and_eval_before_their_inputs_are_one_line(tmp_path):
+    """`table` before `eval` ended in a Python traceback, `eval` before `train` in a bash
+    error; each is one line naming the missing file and the step to run, exit 2."""
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    for cmd, missing, step in (
+        ("table", "eval-test/results_runs.csv", "eval"),
+        ("eval", "chosen.csv", "train"),
+    ):
+        r = _driver(cmd, runs, tmp_path)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1, (r.returncode, r.stderr)
+        assert lines[0].startswith("error: ") and str(runs / missing) in lines[0], lines
+        assert f"bench/exid_tab2.sh {step}" in lines[0] and r.stdout == ""
+    assert sorted(p.name for p in runs.iterdir()) == []  # nothing made by either
+
+
+def test_table_with_a_missing_run_is_one_line(tmp_path, capsys):
+    """A run named in results_runs.csv without its metrics.csv: one line, no partial table."""
+    head = ["run", "method", "minADE", "minFDE", "minSADE", "minSFDE", "OR", "OR_circle"]
+    gone = tmp_path / "sc-vlstm-lr5e-4-s0"
+    _write(tmp_path / "results_runs.csv", head, [[gone, "V-LSTM + SC", 1, 2, 1, 2, 0.1, 0.1]])
+    assert exid_tab2_table.main([str(tmp_path)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.strip() == f"error: {gone / 'metrics.csv'}: no such file"
+    (tmp_path / "results_runs.csv").write_text("run,method\ncv,CV\n")
+    assert exid_tab2_table.main([str(tmp_path)]) == 2
+    assert "no column 'minADE'" in capsys.readouterr().err

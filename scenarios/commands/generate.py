@@ -4,42 +4,55 @@ A thin layer over :func:`scenarios.dataset.generate` and the scenario classes: o
 become a recipe, input errors name the option, and a run killed at any point resumes
 when started again with the same options (finished shards are kept). SIGTERM stops a
 run as Ctrl-C does (exit 130); the worker processes also end when the command is killed
-with SIGKILL.
+with SIGKILL. ``--workers`` above the usable cores is lowered to them (with a warning), and
+every count and size option is bounded before any work starts (the limits are in each
+option's help and in the recipe classes).
 """
 
 from __future__ import annotations
 
-import os
+import warnings
 from pathlib import Path
 
 import click
 
-from epo_casadi.errors import SpecError
+from epo_casadi.errors import SpecError, check_size
+from epo_casadi.settings import parse_settings
+from scenarios.files import usable_cores
 
 
 def _cores() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
+    return usable_cores()
+
+
+def capped_workers(workers: int | None, option: str = "--workers") -> int:
+    """``workers`` (default: the usable cores), lowered to the usable cores with a warning:
+    more worker processes than cores only make every unit slower."""
+    cores = _cores()
+    if workers is None:
+        return cores
+    if workers > cores:
+        warnings.warn(
+            f"{option} {workers} is more than the {cores} usable core(s); using {cores}",
+            stacklevel=2,
+        )
+        return cores
+    return workers
+
+
+def _exclusive(kw: dict, key: str, option: str, value) -> None:
+    """Put ``value`` of ``option`` into the overrides ``kw`` under ``key`` (when given);
+    the same field given by ``--set`` too is refused (one of them would be ignored)."""
+    if value is None:
+        return
+    if key in kw:
+        raise SpecError(f"--set {key}", f"has an option of its own, {option}; give it there")
+    kw[key] = value
 
 
 def _parse_set(items: tuple[str, ...]) -> dict:
-    """``KEY=VALUE`` recipe overrides; values are JSON (``1``, ``0.5``, ``[1, 2]``, ``false``),
-    Python's ``True``/``False``/``None``, or a bare string (``lm``)."""
-    import json
-
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="'--set'")
-        k, v = item.split("=", 1)
-        words = {"true": True, "false": False, "none": None, "null": None}
-        try:
-            out[k.strip()] = json.loads(v)
-        except ValueError:
-            out[k.strip()] = words.get(v.strip().lower(), v)  # True/False/None, or a bare string
-    return out
+    """``KEY=VALUE`` recipe overrides, read by :func:`epo_casadi.settings.parse_settings`."""
+    return parse_settings(items, "--set")
 
 
 @click.group("generate")
@@ -133,12 +146,14 @@ def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_time
     if scheduler is not None and engine != "dask":
         raise click.BadParameter("needs --engine dask", param_hint="'--scheduler'")
     check_output_dir(out)
+    # local processes (a pool or a new LocalCluster); a running scheduler has its own workers
+    workers = capped_workers(workers) if scheduler is None else (workers or _cores())
     with sigterm_as_interrupt():
         rep = run(
             scenario,
             out,
             seed=seed,
-            workers=workers or _cores(),
+            workers=workers,
             engine=engine,
             address=scheduler,
             progress=progress,
@@ -157,7 +172,8 @@ def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_time
     "--samples",
     type=click.IntRange(min=1),
     default=None,
-    help="About N samples (N/30 main games, at least 3; the manifest has the exact count). Default: the full set, ~58k samples.",
+    help="About N samples (N/70 main games, N/30 for ground_truth=potential, at least 3; the "
+    "manifest has the exact count; at most 10,000,000). Default: the full set, ~60k samples.",
 )
 @click.option(
     "--solver",
@@ -165,15 +181,20 @@ def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_time
     default=None,
     help="Multimodal game solver (default: the recipe's, ilq).",
 )
-@_dataset_options("Override a recipe field (repeatable), e.g. --set n_samples=6.")
+@_dataset_options(
+    "Override a recipe field (repeatable), e.g. --set n_samples=6 (docs/rpi.md; sizes are "
+    "bounded: main_games <= 1,000,000, horizon, history <= 1,000, ...)."
+)
 def rpi(samples, solver, overrides, **run):
     """Robot-pedestrian interaction dataset (paper App. E.1)."""
-    from scenarios.rpi import RPIRecipe, RPIScenario
+    from scenarios.rpi import MAX_SAMPLES, RPIRecipe, RPIScenario
 
     kw = _parse_set(overrides)
-    if solver is not None:
-        kw["solver"] = solver
+    _exclusive(kw, "solver", "--solver", solver)
     if samples is not None:
+        check_size("--samples", samples, MAX_SAMPLES, "samples of one dataset")
+        if "main_games" in kw:
+            raise SpecError("--set main_games", "is chosen by --samples; give one of them")
         recipe = _recipe(lambda **k: RPIRecipe.for_samples(samples, **k), kw)
     else:
         recipe = _recipe(lambda **k: RPIRecipe.from_dict(k), kw)
@@ -185,16 +206,26 @@ def rpi(samples, solver, overrides, **run):
     "--episodes-per-geometry",
     type=click.IntRange(min=1),
     default=None,
-    help="Episodes per intersection geometry (default: the recipe's, 5 as in the paper).",
+    help="Episodes per intersection geometry (default: the recipe's, 5 as in the paper; at "
+    "most 100,000).",
 )
-@_dataset_options("Override a recipe field (repeatable), e.g. --set augment_copies=2.")
+@_dataset_options(
+    "Override a recipe field (repeatable), e.g. --set augment_copies=2 (docs/left_turn.md; "
+    "sizes are bounded: horizon, history <= 1,000, augment_copies <= 100, ...)."
+)
 def left_turn(episodes_per_geometry, overrides, **run):
     """Left-turn demonstrations on four intersections, split by intersection (docs/left_turn.md)."""
-    from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario
+    from scenarios.left_turn import MAX_EPISODES_PER_GEOMETRY, LeftTurnRecipe, LeftTurnScenario
 
     kw = _parse_set(overrides)
     if episodes_per_geometry is not None:
-        kw["episodes_per_geometry"] = episodes_per_geometry
+        check_size(
+            "--episodes-per-geometry",
+            episodes_per_geometry,
+            MAX_EPISODES_PER_GEOMETRY,
+            "episodes (work units) per geometry",
+        )
+    _exclusive(kw, "episodes_per_geometry", "--episodes-per-geometry", episodes_per_geometry)
     _run_dataset(LeftTurnScenario(_recipe(lambda **k: LeftTurnRecipe.from_dict(k), kw)), **run)
 
 
@@ -223,16 +254,24 @@ def exid(raw, overrides, **run):
     "out",
     required=True,
     type=click.Path(path_type=Path),
-    help="Output directory (data/ and maps/lanelet2/; finished recordings are kept).",
+    help="Output directory (data/ and maps/lanelet2/; records its recipe in recipe.json: a "
+    "rerun with the same options resumes, with more --recordings extends the set; other "
+    "options are refused).",
 )
-@click.option("--recordings", type=click.IntRange(min=1), default=8, show_default=True)
+@click.option(
+    "--recordings",
+    type=click.IntRange(min=1),
+    default=8,
+    show_default=True,
+    help="Recordings, round-robin over the locations (at most 10,000).",
+)
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option(
     "--duration",
-    type=click.FloatRange(min=1.0),
+    type=float,
     default=120.0,
     show_default=True,
-    help="Recorded seconds per recording.",
+    help="Recorded seconds per recording (1 to 3,600; at most 100,000 frames).",
 )
 @click.option(
     "--set",
@@ -246,23 +285,31 @@ def exid(raw, overrides, **run):
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
-    help="Recordings simulated at a time, in worker processes (the same files for any number).",
+    help="Recordings simulated at a time, in worker processes (the same files for any "
+    "number; at most the usable cores).",
 )
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="tqdm progress bar."
 )
 def highway_raw(out, recordings, seed, duration, overrides, workers, progress):
     """Recordings round-robin over the locations (on- and off-ramps, 2 and 3 lanes)."""
-    from scenarios.highway import HighwayOptions, generate_raw
+    from epo_casadi.errors import check_number
+    from scenarios.files import sigterm_as_interrupt
+    from scenarios.highway import MAX_DURATION, MAX_RECORDINGS, HighwayOptions, generate_raw
     from scenarios.sim.common import build_options
 
+    check_size("--recordings", recordings, MAX_RECORDINGS, "recordings of a set")
+    check_number("--duration", duration, lo=1.0, hi=MAX_DURATION)
     kw = _parse_set(overrides)
-    kw.update(recordings=recordings, duration=duration)
+    _exclusive(kw, "recordings", "--recordings", recordings)
+    _exclusive(kw, "duration", "--duration", duration)
     try:
         opts = build_options(HighwayOptions, "highway", kw)
     except TypeError as e:
         raise SpecError("--set", str(e)) from None
-    st = generate_raw(out, opts, seed=seed, progress=progress, workers=workers)
+    workers = capped_workers(workers)
+    with sigterm_as_interrupt():
+        st = generate_raw(out, opts, seed=seed, progress=progress, workers=workers)
     click.echo(
         f"{out}: {st['recordings']} recordings ({st['written']} written: {st['tracks']} tracks, "
         f"{st['rows']} rows, {st['crashes']} crashes removed) in {st['seconds']:.1f} s"
