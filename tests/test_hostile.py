@@ -109,13 +109,17 @@ def test_number_options_refuse_non_finite_huge_and_words(capsys, words, option, 
 # ---- files and folders --------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """A tiny dataset, a one-epoch run on it, a game file and hostile files beside them."""
+    return make_world(tmp_path_factory.mktemp("hostile"))
+
+
+def make_world(root: Path) -> dict[str, Path]:
+    """A tiny dataset, a one-epoch run on it, a game file, one exiD-layout recording and
+    hostile files beside them, under ``root``; the paths by name."""
     from learning.models import ModelConfig
     from learning.train import TrainConfig, train
     from scenarios.cli import main
     from tests.test_models import TINY, synthetic_dataset
 
-    root = tmp_path_factory.mktemp("hostile")
     data = synthetic_dataset()
     run = root / "run"
     cfg = TrainConfig(model=ModelConfig(kind="sc", **TINY), epochs=1, batch_size=4, seed=0)
@@ -129,6 +133,11 @@ def world(tmp_path_factory):
     for name in ("manifest.json", "config.json", "recordingMeta.csv", "00_tracks.csv"):
         (garbage_dir / name).write_bytes(os.urandom(512))
     (root / "dangling").symlink_to(root / "nowhere")
+    os.mkfifo(root / "fifo")  # reading a pipe blocks: readers must refuse non-regular files
+    fifo_dir = root / "fifo_dir"  # a folder whose metadata files are pipes
+    fifo_dir.mkdir()
+    for name in ("manifest.json", "config.json", "00_recordingMeta.csv", "00_tracks.csv"):
+        os.mkfifo(fifo_dir / name)
     exid_raw = root / "exid_raw"  # one short generated recording in the exiD layout
     args = ["generate", "highway-raw", "--out", exid_raw, "--recordings", "1", "--duration", "24"]
     args += ["--no-progress", "--set", "warmup=20", "--set", "frame_rate=10"]
@@ -146,6 +155,9 @@ def world(tmp_path_factory):
         "empty_dir": root / "empty_dir",
         "garbage_dir": root / "garbage_dir",
         "dangling": root / "dangling",
+        "fifo": root / "fifo",
+        "fifo_dir": fifo_dir,
+        "device": Path("/dev/zero"),  # endless: a reader must not read it whole
         "through_file": root / "a_file" / "out",
     }
 
@@ -185,8 +197,8 @@ BASES: dict[str, dict] = {
 
 #: the input cases: the slot's replacement, by the kind of input
 IN_CASES = {
-    "file": ("missing", "empty", "garbage", "empty_dir", "dangling"),
-    "data": ("missing", "file", "empty_dir", "garbage_dir", "garbage", "dangling"),
+    "file": ("missing", "empty", "garbage", "empty_dir", "dangling", "fifo", "device"),
+    "data": ("missing", "file", "empty_dir", "garbage_dir", "garbage", "dangling", "fifo_dir"),
 }
 IN_CASES["exid"] = IN_CASES["data"]
 
@@ -229,15 +241,38 @@ def test_unwritable_outputs_are_one_line(capsys, world, tmp_path, cmd, case):
     run_refused(capsys, [*cmd.split(), *args])
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+#: as root, permissions are dropped for the read-only cases (root writes anywhere)
+SETPRIV = shutil.which("setpriv")
+DROP = [
+    "--inh-caps=-dac_override,-dac_read_search",
+    "--bounding-set=-dac_override,-dac_read_search",
+]
+
+
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="root writes into read-only folders"
+)
 @pytest.mark.parametrize("cmd", [c for c, b in BASES.items() if b.get("out") == "dir"])
 def test_read_only_output_folders_are_one_line(capsys, world, tmp_path, cmd):
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o500)
     try:
-        args = _fill(BASES[cmd], world, tmp_path, OUT=ro / "out")
-        run_refused(capsys, [*cmd.split(), *args])
+        args = [*cmd.split(), *_fill(BASES[cmd], world, tmp_path, OUT=ro / "out")]
+        if os.geteuid() != 0:
+            run_refused(capsys, args)
+            return
+        import subprocess
+        import sys
+
+        r = subprocess.run(
+            [SETPRIV, *DROP, "--", sys.executable, "-m", "scenarios.cli", *map(str, args)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=ALARM * 2,
+        )
+        one_error_line(r.returncode, r.stderr)
     finally:
         ro.chmod(0o700)
         shutil.rmtree(ro, ignore_errors=True)
