@@ -1,5 +1,6 @@
 """Every ```python block of README.md runs as written (cvxpylayers-style README tests), and
-prints what the README promises: the solver's status, the layer's status codes."""
+prints what the README promises: the solver's status, the layer's status codes, a verified
+dataset, the solvers' agreement and the Nash certificate."""
 
 import pathlib
 import re
@@ -32,7 +33,37 @@ def _check_layer_block(out: str) -> None:
     assert m.group(4) == "True"  # gradients reached the weights
 
 
-CHECKS = {"solve_lm(": _check_solver_block, "GameLayer(": _check_layer_block}
+def _check_data_block(out: str) -> None:
+    # print(report.counts); print(verify(...).summary()); print({name: shape})
+    m = re.search(r"\{'train': (\d+), 'val': (\d+), 'test': (\d+)\}", out)
+    assert m, out
+    counts = [int(c) for c in m.groups()]
+    assert all(c > 0 for c in counts), out  # every split got main games
+    v = re.search(r"^ok: data/rpi-tiny: (\d+) shards, (\d+) samples", out, re.M)
+    assert v, out  # verify() found no problem
+    assert int(v.group(2)) == sum(counts), out
+    # future: (samples, M = 2 modes, N = 2 agents, T = 40 steps, 4 states)
+    assert f"'future': ({counts[0]}, 2, 2, 40, 4)" in out, out
+
+
+def _check_compare_block(out: str) -> None:
+    rows = re.findall(r"^(\w+): (\w+) \(.*\); energy ([-+.\deE]+),", out, re.M)
+    energy = {name: float(e) for name, _, e in rows}
+    assert sorted(energy) == ["ilq", "ipopt", "lm", "sqp"], out
+    assert all(status == "converged" for _, status, _ in rows), out
+    # LM, IPOPT and SQP reach the same minimizer (printed to 4 decimals); iLQ's feedback
+    # equilibrium is another point with a higher potential
+    assert abs(energy["ipopt"] - energy["lm"]) < 2e-4 and abs(energy["sqp"] - energy["lm"]) < 2e-4
+    assert energy["ilq"] > energy["lm"] + 1e-3, out
+    assert re.search(r"^passes \(", out, re.M), out  # the LM solution is a local Nash eq.
+
+
+CHECKS = {
+    "solve_lm(": _check_solver_block,
+    "GameLayer(": _check_layer_block,
+    "load_split(": _check_data_block,
+    "nash_certificate(": _check_compare_block,
+}
 
 
 def test_readme_has_examples():
