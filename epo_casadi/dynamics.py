@@ -20,7 +20,7 @@ model                  state ``x``                 control ``u``
 =====================  ==========================  ===========================
 
 The unicycle is the dynamically extended unicycle of the paper (App. F.2,
-Eq. (8)); the kinematic bicycle uses the rear-axle reference point with
+its unicycle equation); the kinematic bicycle uses the rear-axle reference point with
 wheelbase ``L``: ``theta' = v tan(delta) / L``.
 """
 

@@ -29,7 +29,7 @@ Pair feature (:data:`PAIR_FEATURES`): ``collision``,
 ``k = every, 2 every, ..., <= K`` with the smooth distance
 ``sqrt(dx^2 + dy^2 + eps)`` so derivatives stay finite when two centres coincide.
 It is symmetric in ``(i, j)``, the condition under which the potential's
-minimizer is an open-loop Nash equilibrium (Theorem 1).
+minimizer is an open-loop Nash equilibrium (paper Sec. 3.2, after Kavuncu et al., Theorem 2).
 
 Soft bounds use ``max(0, g)``; the residual has a kink where the bound becomes
 active, the energy ``1/2 max(0, g)^2`` is continuously differentiable.

@@ -40,7 +40,7 @@ Agent costs (the game)
     ``i``'s own blocks and ``pair_ij`` the energy of the pair blocks of ``{i, j}``. Pair
     terms are shared by both agents, so ``C_i - E`` does not depend on ``u_i``: every
     stationary point of ``E`` is stationary for each ``C_i`` in ``u_i``, and a minimizer of
-    ``E`` is an open-loop Nash equilibrium (paper Theorem 1).
+    ``E`` is an open-loop Nash equilibrium (paper Theorem C.1, App. C).
 
 Batches
     Numeric arrays may carry leading batch dimensions: ``u`` as ``(B, n_u)``, ``p`` as

@@ -306,7 +306,7 @@ def show_cmd(run, data, split, index, out, checkpoint):
 @click.command("show-weights")
 @_sample_figure_options("weights.png")
 def show_weights_cmd(run, data, split, index, out, checkpoint):
-    """Spider plots of ours' predicted weights per mode, one panel per agent (paper Fig. 3c)."""
+    """Spider plots of ours' predicted weights per mode, one panel per agent (as the paper's, App. G.1)."""
     from .spider import weight_spider
 
     click.echo(f"wrote {weight_spider(run, data, index, out, split=split, checkpoint=checkpoint)}")

@@ -8,7 +8,7 @@ not depend on the horizon). ``L_prob`` is the cross entropy of the scene
 probabilities with that closest mode as the target. ``L_goal`` (:func:`goal_loss`, only for
 ours with a goal decoder; in RPI the goals are given and it is zero): the cross entropy of
 each agent's goal distribution with the candidate closest to its ground-truth final
-position as the target, averaged over agents (App. F.4, Eq. (class)); or, for regressed
+position as the target, averaged over agents (App. F.4, Eq. (11)); or, for regressed
 goals, the minSFDE-style ``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` (App. F.4, Waymo). The SC baseline uses ``L_imit + L_prob`` (paper Sec. 5); the
 marginal V-LSTM uses per-agent minADE plus a per-agent classification loss.
 

@@ -1,4 +1,4 @@
-"""Spider (radar) plots of ours' predicted weights per mode, one panel per agent (paper Fig. 3c).
+"""Spider (radar) plots of ours' predicted weights per mode, one panel per agent (as the spider plots of the paper, App. G.1).
 
 :func:`weight_spider` runs a trained ours run on one sample and draws, for every agent, its
 own-feature weights (goal, lane, vref, velocity, ...) and its mean pairwise (collision)

@@ -20,7 +20,7 @@ time. Shapes and index order follow
 :mod:`epo_casadi.game`; IPOPT solves one problem at a time, a batch ``(B, n)`` is a
 loop over its problems.
 
-Without bounds the solution is a local minimizer of ``E`` and hence (paper Theorem 1) a local
+Without bounds the solution is a local minimizer of ``E`` and hence (paper Theorem C.1) a local
 open-loop Nash equilibrium; check it with :func:`solvers.nash.nash_certificate`.
 """
 
