@@ -103,13 +103,17 @@ def main() -> int:
     only = [c.strip() for c in a.only.split(",") if c.strip()]
     todo = [c for c in cases(world) if not only or any(c[0].startswith(o) for o in only)]
     print(f"{len(todo)} cases; files in {root}", flush=True)
+    from tqdm import tqdm
+
     records, failed = [], 0
-    for label, argv, _ in todo:
+    bar = tqdm(todo, unit="case", disable=not sys.stderr.isatty())
+    for label, argv, _ in bar:
         ok, what = run_case(argv, a.timeout)
         records.append({"case": label, "argv": list(map(str, argv)), "ok": ok, "result": what})
         if not ok:
             failed += 1
-            print(f"FAIL {label}: {what}", flush=True)
+            bar.write(f"FAIL {label}: {what}")
+        bar.set_postfix(failed=failed)
     print(f"{len(todo) - failed} of {len(todo)} cases refused in one line; {failed} failed")
     if a.json:
         Path(a.json).write_text(json.dumps(records, indent=1))

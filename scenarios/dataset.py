@@ -89,8 +89,15 @@ import numpy as np
 
 from epo_casadi.errors import EpoError, OutputError, SpecError, short_repr
 
+from .files import (
+    check_input_file,
+    ensure_dir,
+    output_lock,
+    recipe_difference,
+    sigterm_as_interrupt,
+    write_atomic,
+)
 from .files import check_output_dir as _check_output_dir
-from .files import ensure_dir, output_lock, recipe_difference, sigterm_as_interrupt, write_atomic
 
 __all__ = [
     "FORMAT_VERSION",
@@ -412,9 +419,13 @@ def read_manifest(directory: str | os.PathLike) -> dict:
             str(p), "missing: not a dataset directory (or its generation never started)"
         )
     try:
+        check_input_file(p, str(p))  # a regular file small enough to read whole
+    except SpecError as e:
+        raise DatasetError(str(p), e.message) from None
+    try:
         m = json.loads(p.read_text())
-    except (OSError, ValueError) as e:
-        raise DatasetError(str(p), f"unreadable manifest ({e})") from None
+    except (OSError, ValueError, RecursionError) as e:
+        raise DatasetError(str(p), f"unreadable manifest ({type(e).__name__}: {e})") from None
     check_manifest(m, str(p))
     return m
 

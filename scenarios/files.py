@@ -298,21 +298,22 @@ def check_input_file(
     large to read whole are refused in one line naming ``field`` and the path.
     """
     p = Path(path)
+    name = "it" if field == str(p) else str(p)  # the field may be the path itself
     try:
         st = p.stat()
     except FileNotFoundError:
         why = "is a dangling link" if p.is_symlink() else "does not exist"
-        raise SpecError(field, f"{p} {why}") from None
+        raise SpecError(field, f"{name} {why}") from None
     except OSError as e:
-        raise SpecError(field, f"{p}: {e.strerror or type(e).__name__}") from None
+        raise SpecError(field, f"{name}: {e.strerror or type(e).__name__}") from None
     import stat as _stat
 
     if _stat.S_ISDIR(st.st_mode):
-        raise SpecError(field, f"{p} is a folder, expected a file")
+        raise SpecError(field, f"{name} is a folder, expected a file")
     if not _stat.S_ISREG(st.st_mode):
-        raise SpecError(field, f"{p} is not a regular file (a pipe, socket or device)")
+        raise SpecError(field, f"{name} is not a regular file (a pipe, socket or device)")
     if max_bytes is not None and st.st_size > max_bytes:
         raise SpecError(
-            field, f"{p} has {st.st_size:,} bytes, over the limit of {max_bytes:,} for this file"
+            field, f"{name} has {st.st_size:,} bytes, over the limit of {max_bytes:,} for this file"
         )
     return p
