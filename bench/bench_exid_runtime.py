@@ -31,7 +31,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import learning  # noqa: E402, F401  (registers the tgl model kind)
 from learning.data import SceneDataset  # noqa: E402
 from learning.models import ModelConfig, build_model, count_parameters  # noqa: E402
 from learning.train import load_model  # noqa: E402

@@ -46,7 +46,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-import learning  # noqa: E402, F401  (registers the tgl model kind)
 from epo_casadi.errors import EpoError  # noqa: E402
 from learning.baselines import ConstantVelocity  # noqa: E402
 from learning.data import SceneDataset  # noqa: E402

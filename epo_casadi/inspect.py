@@ -10,7 +10,7 @@ contract in :mod:`epo_casadi.game`) and the named functions ``term_energies``,
 * :func:`energy_breakdown` / :func:`agent_breakdown` / :func:`breakdown_table`: per-term
   energy ``e_t = 1/2 ||r_t||^2`` and its share of ``E``, and per-agent costs ``C_i`` split
   into own and pair parts, at parameters ``p`` and a joint strategy ``u`` (arguments
-  ``(game, p, u)``, the solvers' order; see :mod:`epo_casadi.arg_order`);
+  ``(game, p, u)``, the solvers' order; ``p=``, ``u=`` as keywords work too);
 * :func:`jacobian_sparsity` / :func:`jacobian_pattern` / :func:`spy_text`: the
   structural nonzeros of ``J = dr/du`` (``n_r x n_u``), in total, per term and per agent,
   and a text picture of which terms touch which agents' controls;
@@ -30,7 +30,6 @@ from collections.abc import Sequence
 import casadi as ca
 import numpy as np
 
-from .arg_order import p_u_order
 from .errors import SpecError
 from .game import PotentialGame, Term, agent_radius
 
@@ -174,11 +173,9 @@ def _eval(game: PotentialGame, name: str, p, u) -> np.ndarray:
     return np.asarray(game.function(name)(U[0], P[0]), dtype=float).reshape(-1)
 
 
-@p_u_order
 def energy_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
     """Per-term energy at parameters ``p`` and strategy ``u``: the :func:`term_rows` fields
-    plus ``energy`` (``1/2 ||r_t||^2``) and ``share`` (``energy / E``; 0 when ``E = 0``).
-    The old order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`)."""
+    plus ``energy`` (``1/2 ||r_t||^2``) and ``share`` (``energy / E``; 0 when ``E = 0``)."""
     game = _check_game(game)
     e = _eval(game, "term_energies", p, u)
     total = float(e.sum())
@@ -190,13 +187,11 @@ def energy_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[
     return out
 
 
-@p_u_order
 def agent_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
     """Per-agent cost ``C_i`` at ``(p, u)``, split into ``own`` and ``pair`` energy.
 
     ``cost`` comes from the game's ``agent_costs`` function, ``own``/``pair`` from
-    ``term_energies`` (``cost = own + pair``; pair terms count for both agents). The old
-    order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`).
+    ``term_energies`` (``cost = own + pair``; pair terms count for both agents).
     """
     game = _check_game(game)
     e = _eval(game, "term_energies", p, u)
@@ -209,12 +204,11 @@ def agent_breakdown(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[d
     return out
 
 
-@p_u_order
 def breakdown_table(
     game: PotentialGame, p: np.ndarray, u: np.ndarray, top: int | None = None
 ) -> str:
     """Text tables: per-term energy and share (largest first; ``top`` rows if given),
-    then per-agent costs. The old order ``(game, u, p)`` warns."""
+    then per-agent costs."""
     rows = energy_breakdown(game, p=p, u=u)
     total = sum(r["energy"] for r in rows)
     order = sorted(rows, key=lambda r: -r["energy"])
@@ -697,12 +691,10 @@ def hessian_spy_text(game: PotentialGame, width: int = 24, H=None) -> str:
     return "\n".join(lines)
 
 
-@p_u_order
 def term_series(game: PotentialGame, p: np.ndarray, u: np.ndarray) -> list[dict]:
     """Each term's value over time at ``(p, u)``: ``index``, ``steps`` (the time steps, a
     list), ``energy`` (per step ``1/2 ||w c_k||^2``; ``None`` when the term's rows do not
-    split evenly over its steps), ``active`` (steps with a nonzero value) and ``total``.
-    The old order ``(game, u, p)`` warns (:mod:`epo_casadi.arg_order`)."""
+    split evenly over its steps), ``active`` (steps with a nonzero value) and ``total``."""
     game = _check_game(game)
     r = _eval(game, "residual", p, u)
     out = []

@@ -48,7 +48,7 @@ from torch import nn
 
 from epo_casadi.errors import SpecError
 
-__all__ = ["BACKBONES", "Encoder", "HistoryTransformer", "build_backbone", "lane_features"]
+__all__ = ["BACKBONES", "Encoder", "HistoryTransformer", "lane_features"]
 
 #: backbone names (``ModelConfig.backbone``) and their table labels
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
@@ -266,8 +266,3 @@ class HistoryTransformer(nn.Module):
             tok = torch.where(pad[..., None], torch.zeros_like(tok), tok)
         out = self.encoder(tok, src_key_padding_mask=pad)
         return self.out_norm(out[:, 0]).reshape(B, N, self.width)
-
-
-def build_backbone(cfg) -> Encoder:
-    """The observation encoder named by ``cfg.backbone`` (see the module docstring)."""
-    return Encoder(cfg)

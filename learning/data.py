@@ -75,7 +75,6 @@ __all__ = [
     "game_summary",
     "goal_lanes",
     "ground_truth",
-    "register_game",
 ]
 
 #: fields training and evaluation cannot do without
@@ -170,11 +169,6 @@ GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {
     "left-turn": _left_turn_game,
     "exid": _exid_game,
 }
-
-
-def register_game(scenario: str, builder: Callable[[dict], PotentialGame]) -> None:
-    """Make :func:`dataset_game` know the game of another scenario's datasets."""
-    GAME_BUILDERS[scenario] = builder
 
 
 @functools.lru_cache(maxsize=8)

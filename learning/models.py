@@ -79,6 +79,8 @@ __all__ = [
     "EXECUTION_SETTINGS",
     "layer_execution",
     "build_model",
+    "model_class",
+    "MODEL_KINDS",
     "EPOModel",
     "SCModel",
     "VLSTMModel",
@@ -609,14 +611,24 @@ class VLSTMModel(nn.Module):
         return {"pos": pos, "marginal_logits": self.cls_dec(z)}  # (B, N, M)
 
 
-#: model kind -> class; modules that build on this one (learning.tgl) add their kind with
-#: :func:`register_model_kind` when imported (``import learning`` imports them all)
-MODEL_KINDS: dict[str, type[nn.Module]] = {"epo": EPOModel, "sc": SCModel, "vlstm": VLSTMModel}
+#: model kind -> class, or its ``"module:Class"`` path, imported by :func:`model_class` on
+#: first use (``"tgl"``: :mod:`learning.tgl` needs OSQP and SciPy's sparse matrices)
+MODEL_KINDS: dict[str, type[nn.Module] | str] = {
+    "epo": EPOModel,
+    "sc": SCModel,
+    "vlstm": VLSTMModel,
+    "tgl": "learning.tgl:TGLModel",
+}
 
 
-def register_model_kind(kind: str, cls: type[nn.Module]) -> None:
-    """Make :func:`build_model` build ``cls`` for ``ModelConfig(kind=kind)``."""
-    MODEL_KINDS[kind] = cls
+def model_class(kind: str) -> type[nn.Module]:
+    """The class of model kind ``kind``, importing its module when the table names a path."""
+    cls = MODEL_KINDS[kind]
+    if isinstance(cls, str):
+        from epo_casadi.registry import load_class
+
+        cls = MODEL_KINDS[kind] = load_class(cls, "model.kind")
+    return cls
 
 
 def model_game(game: PotentialGame, cfg: ModelConfig) -> PotentialGame:
@@ -635,7 +647,7 @@ def model_game(game: PotentialGame, cfg: ModelConfig) -> PotentialGame:
 
 def build_model(cfg: ModelConfig, game: PotentialGame) -> nn.Module:
     """The predictor named by ``cfg.kind`` for ``game`` (its agents, horizon and parameters)."""
-    return MODEL_KINDS[cfg.kind](cfg, game)
+    return model_class(cfg.kind)(cfg, game)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -65,7 +65,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.features import AccelerationBound, Collision, TurnRateBound, VelocityBound
 from epo_casadi.game import PotentialGame
 
-from .models import _Base, mlp, register_model_kind
+from .models import _Base, mlp
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -589,6 +589,3 @@ class TGLModel(_Base):
             "vref": vref,
             "status": status,
         }
-
-
-register_model_kind("tgl", TGLModel)

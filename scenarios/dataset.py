@@ -208,10 +208,6 @@ class Scenario:
         """Extra JSON facts for the manifest (parameter names, units, ...)."""
         return {}
 
-    def expected_samples(self) -> int | None:
-        """Rough total, for the progress bar only."""
-        return None
-
     def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
         """Samples of unit ``index``: every schema field as ``(n_i, *shape)``."""
         raise NotImplementedError

@@ -1191,10 +1191,6 @@ class ExidScenario(Scenario):
             "units": "metres, seconds, radians",
         }
 
-    def expected_samples(self) -> int | None:
-        m = self.recipe.max_scenes_per_recording
-        return m * self.n_units if m else None
-
     # ---- the game ----------------------------------------------------------------------
     def agent_specs(self) -> list[AgentSpec]:
         """App. F.3 exiD features plus the goal term, per agent."""

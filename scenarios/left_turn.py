@@ -500,8 +500,8 @@ def map_fields(
     SDV's route and the other's lane around their positions), ``goal_candidates``
     ``(2, G, 2)`` along them, and ``vref`` ``(2,)`` (the turn's limit while the turn is in the
     SDV's window). The generator (:meth:`LeftTurnScenario.cut`, exact positions) and the
-    closed-loop planner (:func:`learning.control.left_turn_fields`, the other's estimate)
-    build their scenes with it."""
+    closed-loop planner (:meth:`scenarios.sim.left_turn.LeftTurnWorld.scene_fields`, the
+    other's estimate) build their scenes with it."""
     s_e = _progress(np.asarray(ego_xy, float), pol.route)
     s_o = _progress(np.asarray(other_xy, float), world.other_route)
     win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
@@ -557,12 +557,6 @@ class LeftTurnScenario(Scenario):
         for i in range(self.n_units):
             out[self.split_of(self.geometry_of(i))].append(i)
         return out
-
-    def expected_samples(self) -> int:
-        r = self.recipe
-        per = max(r.episode_steps - r.horizon + 1, 1)
-        E = r.episodes_per_geometry
-        return per * E * (len(r.geometries) + len(r.train_geometries) * r.augment_copies)
 
     def schema(self) -> dict[str, FieldSpec]:
         r = self.recipe

@@ -15,7 +15,7 @@ the field.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -298,10 +298,6 @@ class RoadMap:
                             successors=succ,
                         )
                     )
-        return cls(tuple(lanes))
-
-    @classmethod
-    def of(cls, lanes: Iterable[Lane]) -> RoadMap:
         return cls(tuple(lanes))
 
 

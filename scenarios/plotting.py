@@ -9,8 +9,8 @@ figure and writes it to ``path`` when one is given.
   drawn to scale at a few time steps, initial positions, goals and reference paths.
 * :func:`plot_modes`: the modes of a multi-modal solve side by side, each with its share.
 * :func:`plot_energy_history`: energy per iteration of one or more solves (log scale).
-* :func:`plot_sparsity`: the structural nonzeros of ``J = dr/du`` with term and agent
-  boundaries.
+
+The Jacobian's sparsity is drawn by :func:`scenarios.inspect_plots.plot_inspect_sparsity`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ __all__ = [
     "plot_trajectories",
     "plot_modes",
     "plot_energy_history",
-    "plot_sparsity",
     "agent_colors",
     "image_formats",
     "check_image_path",
@@ -301,29 +300,4 @@ def plot_energy_history(
     ax.grid(True, which="both", lw=0.4, alpha=0.5)
     ax.set_title(title or "energy history", fontsize=9)
     ax.legend(fontsize=8)
-    return _save(fig, path)
-
-
-def plot_sparsity(game: PotentialGame, path: str | Path | None = None, *, title: str | None = None):
-    """Spy plot of ``J = dr/du`` with term boundaries (rows) and agent boundaries (columns)."""
-    from epo_casadi.inspect import jacobian_pattern, jacobian_sparsity
-
-    pat = jacobian_pattern(game)
-    sp = jacobian_sparsity(game)
-    fig = _figure((6.5, 7.0))
-    ax = fig.add_subplot(1, 1, 1)
-    ax.imshow(pat, aspect="auto", cmap="Greys", interpolation="nearest")
-    for t in game.terms[1:]:
-        ax.axhline(t.rows.start - 0.5, lw=0.3, color="tab:blue", alpha=0.6)
-    for off in game.uoff[1:-1]:
-        ax.axvline(off - 0.5, lw=0.8, color="tab:red")
-    ax.set_xticks([(game.uoff[i] + game.uoff[i + 1]) / 2 for i in range(game.N)], game.agent_names)
-    ax.set_xlabel("controls u (agent-major, then time)")
-    ax.set_ylabel("residual rows r (one band per term)")
-    ax.set_title(
-        title
-        or f"J = dr/du: {sp['shape'][0]} x {sp['shape'][1]}, nnz {sp['nnz']} "
-        f"(density {sp['density']:.3f})",
-        fontsize=9,
-    )
     return _save(fig, path)

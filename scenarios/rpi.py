@@ -499,9 +499,6 @@ class RPIScenario(Scenario):
     def split_fractions(self):
         return self.recipe.split
 
-    def expected_samples(self) -> int:
-        return int(self.recipe.main_games * self.recipe.samples_per_game)
-
     def schema(self) -> dict[str, FieldSpec]:
         r = self.recipe
         N, H, M, T = 2, r.history, r.modes, r.horizon

@@ -50,7 +50,6 @@ from dataclasses import asdict, dataclass, fields, replace
 import casadi as ca
 import numpy as np
 
-from epo_casadi.arg_order import p_u_order
 from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
@@ -213,10 +212,9 @@ class NashChecker:
             )
         return self._br[i]
 
-    @p_u_order(method=True)
     def certify(self, p: np.ndarray, u: np.ndarray) -> NashCertificate:
         """Certificate for one problem: ``p`` ``(n_p,)``, ``u`` ``(n_u,)`` (the order of
-        :func:`nash_certificate`; the old ``(u, p)`` warns).
+        :func:`nash_certificate`).
 
         Non-finite ``u`` or ``p`` give a failing certificate (not an exception): every
         solver status, including ``nonfinite``, has one.
@@ -323,7 +321,6 @@ class NashChecker:
         )
 
 
-@p_u_order
 def nash_certificate(
     game: PotentialGame,
     p: np.ndarray,
@@ -333,9 +330,7 @@ def nash_certificate(
     """Local open-loop Nash certificate of the joint strategy ``u`` (``(n_u,)``) for ``p``
     (``(n_p,)``).
 
-    Arguments in the solvers' order ``(game, p, u)``; the old order ``(game, u, p)`` still
-    works with a :class:`DeprecationWarning` (:mod:`epo_casadi.arg_order`; keywords
-    ``p=``, ``u=`` are always safe). See the module docstring for what is measured, the
+    Arguments in the solvers' order ``(game, p, u)`` (or as keywords ``p=``, ``u=``). See the module docstring for what is measured, the
     tolerances and what "local" means. ``options``: :class:`NashOptions` or a dict of its
     fields (unknown keys raise :class:`~epo_casadi.errors.SpecError`).
     """

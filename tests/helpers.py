@@ -163,3 +163,31 @@ def one_error_line(rc: int, err: str, *words: str) -> str:
     for w in words:
         assert w in lines[0], (w, lines[0])
     return lines[0]
+
+
+def proc_children(pid: int) -> list[int]:
+    """Live (not zombie) child processes of ``pid``, read from ``/proc`` (Linux)."""
+    from pathlib import Path
+
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                stat = (p / "stat").read_text()
+            except OSError:
+                continue
+            state, ppid = stat[stat.rindex(")") + 2 :].split()[:2]
+            if int(ppid) == pid and state != "Z":
+                out.append(int(p.name))
+    return out
+
+
+def proc_alive(pid: int) -> bool:
+    """Whether ``pid`` runs (exists and is not a zombie), read from ``/proc`` (Linux)."""
+    from pathlib import Path
+
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] != "Z"

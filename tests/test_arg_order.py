@@ -1,10 +1,11 @@
-"""One argument order ``(game, p, u)`` (epo_casadi.arg_order): the certificate and the
-inspection helpers take the solvers' order; the old ``(game, u, p)`` warns and gives the same
-result; a positional call that sizes cannot disambiguate (``n_u == n_p``) is an error."""
+"""One argument order ``(game, p, u)``: the certificate and the inspection helpers take the
+solvers' order, positionally or as keywords; ``(game, u, p)`` is refused by the sizes it gets
+(``n_u != n_p``) and never read by guessing."""
 
 from __future__ import annotations
 
 import inspect as pyinspect
+import warnings
 
 import numpy as np
 import pytest
@@ -89,31 +90,53 @@ def test_new_order_matches_the_game_functions(game):
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_old_order_warns_and_agrees(game, name):
+def test_old_order_is_refused(game, name):
+    """``(game, u, p)`` is not read by size: the ``u`` it passes as ``p`` has the wrong size."""
     g, p, u = game
     call, norm = CASES[name]
     new = norm(call(g, p, u))
-    with pytest.warns(DeprecationWarning, match=r"\((game, )?p, u\) like the solvers"):
-        old = norm(call(g, u, p))
-    assert old == new
-    # keywords are always the same call, in either order, without a warning
+    with pytest.raises(SpecError, match=r"^u: expected last dimension n_u = 20, got shape \(16,\)"):
+        call(g, u, p)
+    # keywords are always the same call, in either order
     if name == "nash_certificate":
         assert _cert(nash_certificate(g, u=u, p=p, options=NO_BR)) == new
-        with pytest.warns(DeprecationWarning):  # old order with p as a keyword
-            assert _cert(nash_certificate(g, u, p=p, options=NO_BR)) == new
+        with pytest.raises(TypeError, match="multiple values for argument 'p'"):
+            nash_certificate(g, u, p=p, options=NO_BR)  # old order with p as a keyword
     if name == "energy_breakdown":
         assert ins.energy_breakdown(g, u=u, p=p) == new
         assert ins.energy_breakdown(g, p, u=u) == new
 
 
+def test_no_deprecation_warning(game):
+    g, p, u = game
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for call, _ in CASES.values():
+            call(g, p, u)
+            with pytest.raises(SpecError):
+                call(g, u, p)
+
+
+# the same calls with keywords
+KEYWORDS = {
+    "nash_certificate": lambda g, p, u: nash_certificate(g, p=p, u=u, options=NO_BR),
+    "certify": lambda g, p, u: NashChecker(g, NO_BR).certify(p=p, u=u),
+    "energy_breakdown": lambda g, p, u: ins.energy_breakdown(g, p=p, u=u),
+    "agent_breakdown": lambda g, p, u: ins.agent_breakdown(g, p=p, u=u),
+    "breakdown_table": lambda g, p, u: ins.breakdown_table(g, p=p, u=u),
+    "term_series": lambda g, p, u: ins.term_series(g, p=p, u=u),
+}
+
+
 @pytest.mark.parametrize("name", list(CASES))
-def test_equal_sizes_ask_for_keywords(square, name):
+def test_equal_sizes_positional_is_p_then_u(square, name):
+    """With ``n_u == n_p`` a positional call is read in the documented order, like keywords;
+    swapped arrays are another point, not the same result read by size."""
     g, p, u = square
     call, norm = CASES[name]
-    with pytest.raises(SpecError, match=r"ambiguous.*n_u = n_p = 16.*p=\.\.\., u=\.\.\."):
-        call(g, p, u)
-    with pytest.raises(SpecError, match="ambiguous"):
-        call(g, u, p)
+    new = norm(call(g, p, u))
+    assert new == norm(KEYWORDS[name](g, p, u))
+    assert norm(call(g, u, p)) != new
 
 
 def test_equal_sizes_keywords_work(square):

@@ -32,7 +32,7 @@ from learning.train import (
 )
 from scenarios import dataset as ds
 from scenarios.dataset import DatasetError
-from tests.helpers import cli, one_error_line
+from tests.helpers import cli, one_error_line, proc_alive, proc_children
 from tests.test_dataset import ToyScenario
 from tests.test_models import TINY, synthetic_dataset
 
@@ -215,28 +215,6 @@ def test_malformed_manifest_fields_give_one_line(field, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------ item 6
-def _proc_children(pid: int) -> list[int]:
-    out = []
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                stat = (p / "stat").read_text()
-            except OSError:
-                continue
-            state, ppid = stat[stat.rindex(")") + 2 :].split()[:2]
-            if int(ppid) == pid and state != "Z":
-                out.append(int(p.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] != "Z"
-
-
 def _kill_when_a_shard_is_done(
     p: subprocess.Popen, out: Path, sig: int, more_than: int
 ) -> set[int]:
@@ -246,15 +224,15 @@ def _kill_when_a_shard_is_done(
     try:
         while time.monotonic() < deadline and p.poll() is None:
             m = out / "manifest.json"
-            if m.exists() and len(_proc_children(p.pid)) >= 2:
+            if m.exists() and len(proc_children(p.pid)) >= 2:
                 with open(m) as f:
                     if len(json.load(f)["shards"]) > more_than:
                         break
             time.sleep(0.05)
         assert p.poll() is None, "the generation ended before it could be killed"
-        family = set(_proc_children(p.pid))
+        family = set(proc_children(p.pid))
         for c in list(family):
-            family |= set(_proc_children(c))
+            family |= set(proc_children(c))
         assert len(family) >= 2
         p.send_signal(sig)
         p.wait(60)
@@ -286,9 +264,9 @@ def test_killed_generate_leaves_no_processes_and_resumes(tmp_path):
             log.seek(0)
             text = log.read()
         t0 = time.monotonic()
-        while any(_alive(c) for c in family) and time.monotonic() - t0 < 10:
+        while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
             time.sleep(0.05)
-        alive = [c for c in family if _alive(c)]
+        alive = [c for c in family if proc_alive(c)]
         for c in alive:  # do not leave them behind when the test fails
             os.kill(c, signal.SIGKILL)
         assert not alive, f"processes outlived the {sig.name} generation: {alive}"

@@ -29,7 +29,7 @@ from scenarios.files import output_lock
 from scenarios.highway import HighwayOptions
 from scenarios.left_turn import LeftTurnScenario
 from scenarios.rpi import RPIScenario
-from tests.helpers import cli, one_error_line
+from tests.helpers import cli, one_error_line, proc_alive, proc_children
 
 ROOT = Path(__file__).resolve().parents[1]
 # highway-raw: 2 s recorded at 10 Hz after 4 s of warm-up, on one map
@@ -335,28 +335,6 @@ def test_read_only_folder_in_highway_raw_is_one_line(tmp_path, capsys):
 
 
 # ---- SIGTERM: like Ctrl-C ------------------------------------------------------------------
-def _children(pid: int) -> set[int]:
-    out = set()
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                stat = (p / "stat").read_text()
-            except OSError:
-                continue
-            state, ppid = stat[stat.rindex(")") + 2 :].split()[:2]
-            if int(ppid) == pid and state != "Z":
-                out.add(int(p.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] != "Z"
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
 def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, capsys):
     """Class closed: SIGTERM killed highway-raw (exit 143) and its pool's resource tracker
@@ -376,9 +354,9 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
                 break
             time.sleep(0.02)
         assert p.poll() is None, "the run ended before it could be stopped"
-        family = _children(p.pid)
+        family = set(proc_children(p.pid))
         for c in list(family):
-            family |= _children(c)
+            family |= set(proc_children(c))
         p.send_signal(signal.SIGTERM)
         _, err = p.communicate(timeout=60)
     finally:
@@ -386,9 +364,9 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
             p.kill()
             p.wait()
     t0 = time.monotonic()
-    while any(_alive(c) for c in family) and time.monotonic() - t0 < 10:
+    while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
         time.sleep(0.05)
-    alive = [c for c in family if _alive(c)]
+    alive = [c for c in family if proc_alive(c)]
     for c in alive:  # do not leave them behind when the test fails
         os.kill(c, signal.SIGKILL)
     assert not alive, f"processes outlived the stopped run: {alive}"

@@ -32,7 +32,7 @@ from solvers.control.plan import ConstantVelocityPlanner, GameOracle, PlannerOpt
 from solvers.control.track import MPCOptions, MPCTracker, PIDTracker
 from solvers.control.types import Observation, Plan
 from solvers.control.vehicle import VehicleModel
-from tests.helpers import cli, one_error_line
+from tests.helpers import cli, one_error_line, proc_alive, proc_children
 from tests.test_plan import TwoCarScene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -461,28 +461,6 @@ def test_scheduler_timeout_is_an_option_of_simulate(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------ SIGTERM
-def _children(pid: int) -> list[int]:
-    out = []
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                stat = (p / "stat").read_text()
-            except OSError:
-                continue
-            state, ppid = stat[stat.rindex(")") + 2 :].split()[:2]
-            if int(ppid) == pid and state != "Z":
-                out.append(int(p.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] != "Z"
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
 def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
     """Class closed: SIGTERM killed ``epo simulate`` with status 143 and a leaked-semaphore
@@ -498,13 +476,13 @@ def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
             deadline = time.monotonic() + 240
             while time.monotonic() < deadline and p.poll() is None:
                 done = list((out / "episodes").glob("episode-*.json")) if out.exists() else []
-                if done and len(_children(p.pid)) >= need:
+                if done and len(proc_children(p.pid)) >= need:
                     break
                 time.sleep(0.05)
             assert p.poll() is None, "the run ended before it could be stopped"
-            family = set(_children(p.pid))
+            family = set(proc_children(p.pid))
             for c in list(family):
-                family |= set(_children(c))
+                family |= set(proc_children(c))
             p.send_signal(signal.SIGTERM)
             p.wait(60)
         finally:
@@ -514,9 +492,9 @@ def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
         log.seek(0)
         text = log.read()
     t0 = time.monotonic()
-    while any(_alive(c) for c in family) and time.monotonic() - t0 < 10:
+    while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
         time.sleep(0.05)
-    alive = [c for c in family if _alive(c)]
+    alive = [c for c in family if proc_alive(c)]
     for c in alive:
         os.kill(c, signal.SIGKILL)
     assert not alive, f"processes outlived the stopped run: {alive}"
