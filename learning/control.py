@@ -35,7 +35,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -44,8 +44,9 @@ import torch
 from torch import nn
 
 from epo_casadi.errors import EpoError, SpecError, check_size
+from scenarios.sim import FRAMES, dataset_frame, world_scenario
 from solvers.control.plan import failed_plan
-from solvers.control.types import Estimate, Observation, Plan
+from solvers.control.types import Estimate, Observation, Plan, world_member
 
 from .layer import GameLayer
 
@@ -60,10 +61,8 @@ __all__ = [
     "NetworkPlanner",
     "observation_scene",
     "load_planner",
-    "register_scene_fields",
-    "left_turn_fields",
-    "SCENARIO_FRAMES",
-    "world_scenario",
+    "model_planner",
+    "sc_planner",
 ]
 
 
@@ -128,32 +127,6 @@ def plan(model: nn.Module, scene: dict, agent: int = 0) -> SDVPlan:
 # --------------------------------------------------------------------------------------
 # the network as a closed-loop planner
 # --------------------------------------------------------------------------------------
-#: frames a dataset may store its samples in (manifest ``meta.frame``)
-FRAMES = ("world", "agent")
-
-#: the frame of a dataset scenario whose manifest states ``meta.frame`` in words rather than
-#: as one of :data:`FRAMES` (left-turn: "SDV at the origin, x along its heading, ...")
-SCENARIO_FRAMES = {"left-turn": "agent"}
-
-#: scenario name -> ``fn(world, obs, est, frame, spec) -> {field: array}``: scene fields the
-#: planner cannot build itself (e.g. ``goal_candidates`` from a map), in the dataset's frame
-SCENE_FIELDS: dict[str, Callable] = {}
-
-
-def register_scene_fields(scenario: str, fn: Callable) -> None:
-    """Let the planner build a scenario's extra scene fields (e.g. ``goal_candidates``).
-
-    ``fn(world, obs, est, frame, spec)`` returns a dict of numpy arrays without the batch
-    axis, in the dataset's frame (``frame`` is the :class:`SceneFrame` of the current step;
-    ``est`` the :class:`~solvers.control.types.Estimate`; ``spec`` the
-    :class:`SceneSpec`, whose ``recipe`` is the run's dataset recipe), exactly as the
-    scenario's generator writes them.
-    """
-    if not isinstance(scenario, str) or not callable(fn):
-        raise SpecError("scenario", "expected a scenario name and a callable")
-    SCENE_FIELDS[scenario] = fn
-
-
 @dataclass(frozen=True)
 class SceneSpec:
     """What a trained model expects of a scene (read from a run directory).
@@ -395,30 +368,15 @@ def _fused_layer(layer: GameLayer) -> GameLayer:
     )
 
 
-#: world name (``World.name``) -> the dataset scenario whose scenes it plays, where they differ
-WORLD_SCENARIOS = {"crossing": "rpi"}
-
-
-def world_scenario(world) -> str | None:
-    """The dataset scenario (manifest ``scenario``) a world plays: its ``dataset_scenario``
-    attribute, else :data:`WORLD_SCENARIOS` of its ``name``, else its ``name``; None when
-    it names nothing."""
-    v = getattr(world, "dataset_scenario", None)
-    if isinstance(v, str):
-        return v
-    name = getattr(world, "name", None)
-    return WORLD_SCENARIOS.get(name, name) if isinstance(name, str) else None
-
-
 def _world_checks(spec: SceneSpec, world, where: str) -> None:
     """Refuse a world whose shapes differ from the model's (agents, step, horizon, history)."""
-    n = getattr(world, "n_agents", None)
+    n = world.n_agents
     if n is not None and int(n) != spec.n_agents:
         raise SpecError(
             "world.n_agents",
             f"the model at {where} was trained on {spec.n_agents} agents, the world has {n}",
         )
-    dt = getattr(world, "dt", None)
+    dt = world.dt
     if dt is None or not math.isclose(float(dt), spec.dt, rel_tol=1e-9, abs_tol=1e-12):
         raise SpecError(
             "world.dt",
@@ -429,7 +387,7 @@ def _world_checks(spec: SceneSpec, world, where: str) -> None:
         ("horizon", spec.horizon, "future steps"),
         ("history", spec.history_steps - 1, "history steps"),
     ):
-        got = getattr(world, attr, None)
+        got = world_member(world, attr)
         if got is not None and int(got) != want:
             raise SpecError(
                 f"world.{attr}",
@@ -446,7 +404,7 @@ def _world_checks(spec: SceneSpec, world, where: str) -> None:
         raise SpecError(
             "world.scenario",
             f"the model at {where} was trained on {spec.scenario!r} data, the world "
-            f"{getattr(world, 'name', type(world).__name__)!r} plays {scenario!r} scenes",
+            f"{world_member(world, 'name') or type(world).__name__!r} plays {scenario!r} scenes",
         )
 
 
@@ -481,7 +439,6 @@ class NetworkPlanner:
         self.world = None
         self._ego: list[np.ndarray] = []
         self._goals: np.ndarray | None = None
-        self.extra_fields = SCENE_FIELDS.get(spec.scenario)
         #: what identifies the trained model: ``{"checkpoint": file name, "sha256": of the
         #: file, "epoch", "step"}`` (set by :func:`load_planner`; None for a model given here)
         self.identity: dict | None = None
@@ -522,8 +479,8 @@ class NetworkPlanner:
         scene, frame = observation_scene(
             np.stack(self._ego), est.history, est.valid, self.spec, goals
         )
-        if self.extra_fields is not None:
-            scene.update(self.extra_fields(self.world, obs, est, frame, self.spec))
+        extra = world_member(self.world, "scene_fields")  # the map fields of the world's scenes
+        scene.update(extra(obs, est, frame, self.spec.recipe))
         return scene, frame
 
     @torch.no_grad()
@@ -586,35 +543,6 @@ class NetworkPlanner:
         return failed_plan(t, self.spec.dt, self.spec.horizon, message, **info)
 
 
-def left_turn_fields(
-    world, obs: Observation, est: Estimate, frame: SceneFrame, spec: SceneSpec
-) -> dict[str, np.ndarray]:
-    """The map fields of a left-turn scene (``lanes``, ``paths``, ``vref``,
-    ``goal_candidates``), built as :meth:`scenarios.left_turn.LeftTurnScenario.cut` builds
-    them: lane windows and goal candidates along the ego's route from its exact position and
-    along the oncoming car's lane from its *estimated* position, speed limits from the
-    ego's route, in ``frame``. ``world``: a :class:`scenarios.sim.left_turn.LeftTurnWorld`
-    after ``reset`` (its map and the oncoming car's lane); ``spec.recipe``: the run's
-    dataset recipe (window lengths and point counts; defaults where absent)."""
-    from scenarios.left_turn import LeftTurnRecipe, SDVPolicy, map_fields
-
-    known = {f.name for f in fields(LeftTurnRecipe)}
-    r = LeftTurnRecipe.from_dict({k: v for k, v in (spec.recipe or {}).items() if k in known})
-    pol = SDVPolicy(world, r, "enter")  # the route, turn interval and speed limits
-    ego, other = np.asarray(obs.ego, float)[:2], np.asarray(est.states, float)[0, :2]
-    lanes, cands, vref = map_fields(r, world, pol, ego, other)
-    lanes = frame.points_in(lanes).astype(np.float32)
-    return {
-        "lanes": lanes,
-        "paths": lanes.copy(),
-        "vref": vref.astype(np.float32),
-        "goal_candidates": frame.points_in(cands).astype(np.float32),
-    }
-
-
-register_scene_fields("left-turn", left_turn_fields)
-
-
 # --------------------------------------------------------------------------------------
 # loading a run
 # --------------------------------------------------------------------------------------
@@ -643,6 +571,65 @@ def _run_schema(run: Path, data: Mapping) -> tuple[dict, dict]:
         }:
             return {k: v["shape"] for k, v in m["schema"].items()}, dict(m.get("meta") or {})
     return {}, {}
+
+
+def _checkpoint_file(d: Path, checkpoint: str) -> Path:
+    """The checkpoint of run ``d`` to load: ``best.pt`` when asked and present, else
+    ``checkpoint.pt``; a missing run or file is a ``CheckpointError``."""
+    from .train import CheckpointError
+
+    if not d.is_dir():
+        raise CheckpointError(str(d), "no such run directory")
+    if checkpoint not in ("best", "last"):
+        raise SpecError("checkpoint", f"expected 'best' or 'last', got {checkpoint!r}")
+    path = (
+        d / "best.pt" if checkpoint == "best" and (d / "best.pt").exists() else d / "checkpoint.pt"
+    )
+    if not path.exists():
+        raise CheckpointError(
+            str(path), "missing: not a training run directory (or it never finished an epoch)"
+        )
+    return path
+
+
+def _history_shape(d: Path, schema: Mapping, data: Mapping, ck: Mapping) -> list:
+    """``[H + 1, N, 4]``: the schema's history shape, or for runs trained before
+    ``config.json`` stored the schema, the recipe's ``H`` and the game's agents."""
+    from .train import CheckpointError
+
+    hist = schema.get("history")
+    if hist is not None:
+        return hist
+    H = (data.get("recipe") or {}).get("history")
+    if not isinstance(H, int):
+        raise CheckpointError(
+            f"{d / 'config.json'}.data.schema.history",
+            "missing, and the dataset's recipe names no history length",
+        )
+    return [H + 1, len(ck["game"]["agents"]), 4]
+
+
+def _goal_reading(d: Path, cfg, game, schema: Mapping, world, scenario: str) -> bool:
+    """Whether ours reads the scene's given goals; refuses a model that reads goal
+    candidates the world cannot build (``World.scene_field_names``)."""
+    kind = cfg.model.kind
+    reads = (
+        kind == "epo"
+        and cfg.model.goal_decoder == "given"
+        and any(f"goal.{a}" in game.params for a in game.agent_names)
+    )
+    if (
+        kind == "epo"
+        and cfg.model.goal_decoder == "candidates"
+        and "goal_candidates" in schema
+        and "goal_candidates" not in world_member(world, "scene_field_names")
+    ):
+        raise SpecError(
+            f"{d / 'config.json'}.data.schema.goal_candidates",
+            f"the model reads goal candidates and the planner cannot build them for scenario "
+            f"{scenario!r}: the world's scene_fields() must build them (World.scene_field_names)",
+        )
+    return reads
 
 
 def load_planner(
@@ -684,17 +671,7 @@ def load_planner(
 
         world = make_world(world)
     d = Path(run_dir)
-    if not d.is_dir():
-        raise CheckpointError(str(d), "no such run directory")
-    if checkpoint not in ("best", "last"):
-        raise SpecError("checkpoint", f"expected 'best' or 'last', got {checkpoint!r}")
-    path = (
-        d / "best.pt" if checkpoint == "best" and (d / "best.pt").exists() else d / "checkpoint.pt"
-    )
-    if not path.exists():
-        raise CheckpointError(
-            str(path), "missing: not a training run directory (or it never finished an epoch)"
-        )
+    path = _checkpoint_file(d, checkpoint)
     sha = sha256_file(path)
     ck = load_checkpoint(path)
     cfg = _checkpoint_config(ck, str(path))
@@ -710,18 +687,8 @@ def load_planner(
     if not scenario:
         raise CheckpointError(f"{path}.data.scenario", "missing: the run names no dataset scenario")
     schema, meta = _run_schema(d, data)
-    hist = schema.get("history")
-    if hist is None:  # runs trained before config.json stored the schema: the recipe's H
-        H = (data.get("recipe") or {}).get("history")
-        if not isinstance(H, int):
-            raise CheckpointError(
-                f"{d / 'config.json'}.data.schema.history",
-                "missing, and the dataset's recipe names no history length",
-            )
-        hist = [H + 1, len(ck["game"]["agents"]), 4]
-    frame = meta.get("frame", "world")
-    if frame not in FRAMES:  # a manifest that describes its frame in words
-        frame = SCENARIO_FRAMES.get(scenario, frame)
+    hist = _history_shape(d, schema, data, ck)
+    frame = dataset_frame(scenario, meta.get("frame", "world"))
     if frame not in FRAMES:
         raise SpecError(
             f"{d / 'config.json'}.data.meta.frame", f"expected one of {list(FRAMES)}, got {frame!r}"
@@ -745,22 +712,7 @@ def load_planner(
             "plans unicycle states (x, y, v, theta) of size 4",
         )
     model, cfg, ck = load_model(d, game, which=checkpoint)
-    reads_goals = (
-        kind == "epo"
-        and cfg.model.goal_decoder == "given"
-        and any(f"goal.{a}" in game.params for a in game.agent_names)
-    )
-    if (
-        kind == "epo"
-        and cfg.model.goal_decoder == "candidates"
-        and "goal_candidates" in schema
-        and scenario not in SCENE_FIELDS
-    ):
-        raise SpecError(
-            f"{d / 'config.json'}.data.schema.goal_candidates",
-            f"the model reads goal candidates and the planner cannot build them for scenario "
-            f"{scenario!r}: register a builder with learning.control.register_scene_fields",
-        )
+    reads_goals = _goal_reading(d, cfg, game, schema, world, scenario)
     spec = replace(
         spec0,
         reads_goals=reads_goals,
@@ -780,3 +732,32 @@ def load_planner(
     }
     planner.reset(world)
     return planner
+
+
+# --------------------------------------------------------------------------------------
+# the trained planners of the closed loop's table (scenarios.closed_loop.roles.PLANNERS)
+# --------------------------------------------------------------------------------------
+def _run_planner(config, kind: str) -> NetworkPlanner:
+    """The planner of the trained run ``config.model`` for ``config.scenario`` (a world of
+    default options), its options ``config.planner_options``; a run of another model kind
+    than ``kind`` is refused naming the planner that plays it."""
+    planner = load_planner(config.model, config.scenario, **config.planner_options)
+    got = planner.spec.kind
+    if got != kind:
+        other = "model" if got == "epo" else "sc"
+        raise SpecError(
+            "planner", f"the run {config.model} holds a {got!r} model; use --planner {other} for it"
+        )
+    return planner
+
+
+def model_planner(config) -> NetworkPlanner:
+    """The closed loop's ``"model"`` planner: ours (an ``"epo"`` run) from a
+    :class:`scenarios.closed_loop.SimConfig`."""
+    return _run_planner(config, "epo")
+
+
+def sc_planner(config) -> NetworkPlanner:
+    """The closed loop's ``"sc"`` planner: the SC baseline (an ``"sc"`` run) from a
+    :class:`scenarios.closed_loop.SimConfig`."""
+    return _run_planner(config, "sc")

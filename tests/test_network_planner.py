@@ -356,9 +356,10 @@ def test_left_turn_scenes_equal_the_dataset_samples():
     so every plan failed). Reference: the generator's samples of one episode
     (:meth:`scenarios.left_turn.LeftTurnScenario.cut`), the world replayed from its stored
     seed and the planner fed the true states step by step."""
-    from learning.control import SCENARIO_FRAMES, SceneSpec
+    from learning.control import SceneSpec
     from scenarios import dataset as ds
     from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario, SDVPolicy, simulate
+    from scenarios.sim import SCENARIO_FRAMES
 
     recipe = LeftTurnRecipe(
         episodes_per_geometry=1, episodes_per_shard=1, history=5, horizon=20,

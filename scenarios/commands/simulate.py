@@ -22,27 +22,26 @@ from pathlib import Path
 import click
 
 from epo_casadi.errors import OutputError, SpecError, check_size
+from scenarios.closed_loop.roles import PLANNERS, TRACKERS
 
 from .generate import _cores, _parse_set, capped_workers, engine_options
-
-PLANNERS = ("model", "oracle", "cv", "sc")
-TRACKERS = ("pid", "mpc")
 
 
 @click.command("simulate")
 @click.argument("scenario")
 @click.option(
     "--planner",
-    type=click.Choice(PLANNERS),
+    type=click.Choice(PLANNERS.names()),
     default="oracle",
     show_default=True,
     help="model: the trained network (ours); oracle: the game with the true tasks; "
-    "cv: constant-velocity predictions + best response; sc: the SC baseline network.",
+    "cv: constant-velocity predictions + best response; sc: the SC baseline network "
+    "(and any registered with scenarios.closed_loop.register_planner).",
 )
 @click.option("--model", "model", default=None, help="Trained run directory (planners model, sc).")
 @click.option(
     "--tracker",
-    type=click.Choice(TRACKERS),
+    type=click.Choice(TRACKERS.names()),
     default="mpc",
     show_default=True,
     help="pid: speed and heading PIDs; mpc: OSQP linear time-varying MPC.",
@@ -125,38 +124,19 @@ def simulate(
 
     if scenario not in WORLDS:
         raise SpecError("scenario", f"unknown scenario {scenario!r}; valid: {', '.join(WORLDS)}")
-    if model is not None and planner not in ("model", "sc"):
+    trained = PLANNERS.needing_model()
+    if model is not None and planner not in trained:
         raise click.BadParameter(
-            f"is only used by --planner model or sc, not {planner}", param_hint="'--model'"
+            f"is only used by --planner {' or '.join(trained)}, not {planner}",
+            param_hint="'--model'",
         )
-    if planner in ("model", "sc") and model is None:
+    if planner in trained and model is None:
         raise click.BadParameter(f"--planner {planner} needs a trained run", param_hint="'--model'")
     if model is not None and not Path(model).is_dir():
         raise click.BadParameter(f"no run directory at {model}", param_hint="'--model'")
     if scheduler is not None and engine != "dask":
         raise click.BadParameter("needs --engine dask", param_hint="'--scheduler'")
-    groups: dict[str, dict] = {"world": {}, "planner": {}, "tracker": {}, "estimator": {}}
-    for key, value in _parse_set(overrides).items():
-        head, _, name = key.partition(".")
-        if head not in groups or not name:
-            raise click.BadParameter(
-                f"expected world.KEY, planner.KEY, tracker.KEY or estimator.KEY, got {key!r}",
-                param_hint="'--set'",
-            )
-        groups[head][name] = value
-    for opt, name, value in (
-        ("--noise", "noise_std", noise),
-        ("--dropout", "dropout_prob", dropout),
-        ("--geometry", "geometry", geometry),
-    ):
-        if value is None:
-            continue
-        if name in groups["world"]:
-            raise click.BadParameter(
-                f"sets the world's {name}, and so does --set world.{name}; give only one",
-                param_hint=f"'{opt}'",
-            )
-        groups["world"][name] = value
+    groups = _option_groups(overrides, noise, dropout, geometry)
     if noise is not None and not noise >= 0:
         raise click.BadParameter(f"expected a number >= 0, got {noise}", param_hint="'--noise'")
     if dropout is not None and not 0 <= dropout <= 1:
@@ -207,6 +187,34 @@ def simulate(
         paths = write_figures(out, rep)
         click.echo("figures: " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def _option_groups(overrides, noise, dropout, geometry) -> dict[str, dict]:
+    """``--set`` and the world's shortcuts (``--noise``, ``--dropout``, ``--geometry``) as
+    options per role: ``{"world": ..., "planner": ..., "tracker": ..., "estimator": ...}``."""
+    groups: dict[str, dict] = {"world": {}, "planner": {}, "tracker": {}, "estimator": {}}
+    for key, value in _parse_set(overrides).items():
+        head, _, name = key.partition(".")
+        if head not in groups or not name:
+            raise click.BadParameter(
+                f"expected world.KEY, planner.KEY, tracker.KEY or estimator.KEY, got {key!r}",
+                param_hint="'--set'",
+            )
+        groups[head][name] = value
+    for opt, name, value in (
+        ("--noise", "noise_std", noise),
+        ("--dropout", "dropout_prob", dropout),
+        ("--geometry", "geometry", geometry),
+    ):
+        if value is None:
+            continue
+        if name in groups["world"]:
+            raise click.BadParameter(
+                f"sets the world's {name}, and so does --set world.{name}; give only one",
+                param_hint=f"'{opt}'",
+            )
+        groups["world"][name] = value
+    return groups
 
 
 def write_figures(out: Path, rep) -> list[Path]:

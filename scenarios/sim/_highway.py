@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from epo_casadi.errors import EpoError, check_number
-from solvers.control.types import Observation
+from solvers.control.types import Observation, WorldBase
 
 from ..maps import project_to_polyline
 from .common import circles_overlap
@@ -88,7 +88,7 @@ def hw() -> SimpleNamespace:
     )
 
 
-class HighwayWorld:
+class HighwayWorld(WorldBase):
     """What the highway-env worlds share: truth, observation, placement and the outcome
     checks (collision, off-road, timeout; success is each world's own :meth:`_succeeded`).
 

@@ -20,6 +20,7 @@ __all__ = [
     "check_range",
     "check_sensor",
     "circles_overlap",
+    "ego_interval",
     "gap_decision",
     "seeds",
     "time_to_cover",
@@ -227,3 +228,11 @@ def check_command(command, names: str) -> np.ndarray:
     if u.shape != (2,) or not np.all(np.isfinite(u)):
         raise SpecError("command", f"expected 2 finite numbers ({names}), got {command!r}")
     return u
+
+
+def ego_interval(zone) -> tuple[float, float] | None:
+    """The ego's arc-length interval ``zone.a`` of a :class:`scenarios.maps.ConflictZone`
+    (None for no zone): what :meth:`solvers.control.types.World.conflict_zone` returns."""
+    if zone is None:
+        return None
+    return (float(zone.a[0]), float(zone.a[1]))

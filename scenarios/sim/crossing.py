@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from epo_casadi.errors import SpecError, check_number
-from solvers.control.types import AgentTask, Observation
+from solvers.control.types import AgentTask, Observation, WorldBase
 from solvers.control.vehicle import VehicleModel
 
 from ..maps import Lane, RoadMap, project_to_polyline
@@ -53,6 +53,7 @@ from .common import (
     check_episode_sizes,
     check_range,
     check_sensor,
+    ego_interval,
     gap_decision,
     seeds,
     time_to_cover,
@@ -113,10 +114,12 @@ class CrossingOptions:
         check_number(f"{p}.off_road_margin", self.off_road_margin, lo=0.0)
 
 
-class CrossingWorld:
-    """The RPI crossing as a :class:`solvers.control.types.World` (module docstring)."""
+class CrossingWorld(WorldBase):
+    """The RPI crossing as a :class:`solvers.control.types.World` (module docstring); it
+    plays the scenes of the ``rpi`` datasets."""
 
     name = "crossing"
+    dataset_scenario = "rpi"
 
     def __init__(self, options: CrossingOptions | None = None, **kw):
         if options is not None and kw:
@@ -134,6 +137,9 @@ class CrossingWorld:
         self.radii = np.full(2, float(o.radius))
         self._rpi = RPIScenario(_RPI)
         self.sensor = Sensor(1, o.noise_std, o.dropout_prob, o.dropout_burst)
+        self.road_map: RoadMap | None = None  # the episode's two straight lanes (reset)
+        self.ego_task: AgentTask | None = None  # the robot's task (reset)
+        self.conflict = None  # where the two lanes meet (reset; None: they never do)
         self._ready = False
 
     def reset(self, seed: int) -> Observation:
@@ -199,6 +205,10 @@ class CrossingWorld:
 
     def outcome(self) -> str:
         return self.latch.value
+
+    def conflict_zone(self) -> tuple[float, float] | None:
+        """The robot's arc-length interval of :attr:`conflict` (None without one)."""
+        return ego_interval(self.conflict)
 
     def info(self) -> dict:
         """The pedestrian's hidden state (metrics and tests, never planners)."""

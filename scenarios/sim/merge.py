@@ -161,6 +161,7 @@ class MergeWorld(HighwayWorld):
     """The on-ramp merge as a :class:`solvers.control.types.World` (module docstring)."""
 
     name = "merge"
+    dataset_scenario = "merge"
 
     def __init__(self, options: MergeOptions | None = None, **kw):
         if options is not None and kw:

@@ -23,7 +23,7 @@ No torch here (the network planner lives in :mod:`learning.control` and implemen
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -37,6 +37,8 @@ __all__ = [
     "Planner",
     "Tracker",
     "World",
+    "WorldBase",
+    "world_member",
 ]
 
 
@@ -156,11 +158,34 @@ class Tracker(Protocol):
 
 @runtime_checkable
 class World(Protocol):
-    """A simulated scene. ``dt``: the planning period (s); ``vehicle``: the ego's model
-    (:class:`solvers.control.vehicle.VehicleModel`); ``ego_task``: the ego's
-    :class:`AgentTask`; ``n_agents``; ``radii`` ``(N,)``; ``max_steps``."""
+    """A simulated scene: every member the closed loop and its planners read.
+
+    Required: ``dt`` (the planning period, s); ``vehicle``, the ego's model
+    (:class:`solvers.control.vehicle.VehicleModel`); ``ego_task``, the ego's
+    :class:`AgentTask`; ``n_agents``; ``radii`` ``(N,)``; the methods below.
+
+    Optional, with the defaults of :class:`WorldBase` (a world may inherit them; the loop
+    and the planners read them with :func:`world_member`, so a world that leaves them out
+    gets the same defaults): ``name`` (the registry name, e.g. ``"left-turn"``),
+    ``dataset_scenario`` (the dataset scenario whose scenes it plays, manifest
+    ``scenario``), ``max_steps``, ``road_map`` (a :class:`scenarios.maps.RoadMap`, for
+    figures), ``horizon`` / ``history`` (the steps a trained planner must predict / read,
+    where the world states them), ``scene_field_names`` and :meth:`conflict_zone`,
+    :meth:`scene_fields`.
+    """
 
     dt: float
+    vehicle: Any
+    ego_task: AgentTask
+    n_agents: int
+    radii: np.ndarray
+    name: str | None
+    dataset_scenario: str | None
+    max_steps: int
+    road_map: Any
+    horizon: int | None
+    history: int | None
+    scene_field_names: tuple[str, ...]
 
     def reset(self, seed: int) -> Observation: ...
 
@@ -177,3 +202,61 @@ class World(Protocol):
     def outcome(self) -> str:
         """``"running"``, ``"success"``, ``"collision"``, ``"timeout"`` or ``"off_road"``."""
         ...
+
+    def conflict_zone(self) -> tuple[float, float] | None:
+        """The ego's arc-length interval ``(s_in, s_out)`` (m along ``ego_task.path``) of
+        the zone it shares with the others (the metric ``time_to_clear``), or None."""
+        ...
+
+    def scene_fields(self, obs: Observation, est: Estimate, frame: Any, recipe) -> dict:
+        """The fields of a dataset scene that a trained planner cannot build from the
+        observation and the estimate itself (``scene_field_names``: e.g. lanes and goal
+        candidates from the map), numpy arrays without the batch axis, exactly as the
+        dataset's generator writes them. ``frame`` maps world points to the scene's frame
+        (``frame.points_in(p)``); ``recipe``: the run's dataset recipe (a mapping or
+        None)."""
+        ...
+
+
+class WorldBase:
+    """The defaults of :class:`World`'s optional members (see there)."""
+
+    name: str | None = None
+    dataset_scenario: str | None = None
+    max_steps: int = 10**6
+    road_map: Any = None
+    horizon: int | None = None
+    history: int | None = None
+    scene_field_names: tuple[str, ...] = ()
+
+    def conflict_zone(self) -> tuple[float, float] | None:
+        return None
+
+    def scene_fields(self, obs: Observation, est: Estimate, frame: Any, recipe) -> dict:
+        return {}
+
+
+#: the optional members of World (their defaults are WorldBase's)
+OPTIONAL_MEMBERS = (
+    "name",
+    "dataset_scenario",
+    "max_steps",
+    "road_map",
+    "horizon",
+    "history",
+    "scene_field_names",
+    "conflict_zone",
+    "scene_fields",
+)
+
+
+def world_member(world: Any, name: str) -> Any:
+    """``world.<name>`` for an optional :class:`World` member, or :class:`WorldBase`'s
+    default (a method bound to ``world``) when the world leaves it out."""
+    if name not in OPTIONAL_MEMBERS:
+        raise KeyError(f"{name!r} is not an optional World member; read world.{name}")
+    try:
+        return getattr(world, name)
+    except AttributeError:
+        default = getattr(WorldBase, name)
+        return default.__get__(world) if callable(default) else default
