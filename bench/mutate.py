@@ -64,12 +64,15 @@ TARGETS: dict[str, list[str]] = {
     "solvers/multimodal.py": ["tests/test_multimodal.py"],
     "solvers/result.py": ["tests/test_result.py"],
     "solvers/ipopt.py": ["tests/test_ipopt.py"],
-    "solvers/ilq.py": [
-        "tests/test_ilq.py",
-        "tests/test_ilq_results.py",
-        "tests/test_ilq_regularization.py",
-        "tests/test_options.py",
-    ],
+    **{
+        f"solvers/ilq/{m}.py": [
+            "tests/test_ilq.py",
+            "tests/test_ilq_results.py",
+            "tests/test_ilq_regularization.py",
+            "tests/test_options.py",
+        ]
+        for m in ("options", "quadratize", "riccati", "rollout", "iteration", "kinks", "solver")
+    },
     "solvers/batch.py": ["tests/test_lm.py"],
     "epo_casadi/game.py": ["tests/test_game.py", "tests/test_gamefile.py"],
     "epo_casadi/features.py": ["tests/test_game.py", "tests/test_goals.py"],

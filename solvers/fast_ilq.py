@@ -35,7 +35,7 @@ so the stage matrices agree to rounding (tested in ``tests/test_ilq_fast.py``).
 One call per line-search trial (:class:`CompiledTrial`, the game's own costs): the
 closed-loop rollout (:class:`CompiledRollout`), the stage groups on its windows, one index
 table from their outputs to the Riccati fold's inputs (what the numpy scatter into
-``Lam``/``Phi`` and the gather of ``_CompiledRiccati.backward`` did) and the fold itself, as
+``Lam``/``Phi`` and the gather of ``CompiledRiccati.backward`` did) and the fold itself, as
 one generated MX function around the same compiled SX functions: the separate calls'
 numbers bit for bit, with Python once per trial instead of five calls with numpy glue.
 
@@ -230,7 +230,7 @@ def build(solver, Xs, Us, p, C, E, lamv, phi_out, r_traj) -> CompiledQuadratize 
 class CompiledRollout:
     """The closed-loop rollout as one generated-C stage function folded over ``K`` stages.
 
-    The stage is the body of :meth:`solvers.ilq.ILQSolver._build_rollout` (same SX
+    The stage is the body of :func:`solvers.ilq.rollout.build_rollout` (same SX
     operations): ``(x_k, dY_k), Xr_k, Ur_k, [P_k | a_k], eps -> (x_k+1, dY_k+1), U_k``.
     ``__call__`` has the signature of the interpreted ``ilq_rollout`` function.
     """
@@ -275,7 +275,7 @@ class CompiledTrial:
     from ``(Xr, Ur)`` with ``[P | a]`` and step ``eps`` (:class:`CompiledRollout`), the stage
     functions of :class:`CompiledQuadratize` on its windows, their outputs gathered into the
     Riccati fold's inputs (the numpy scatter into ``Lam``/``Phi`` and the gather of
-    :meth:`solvers.ilq._CompiledRiccati.backward`, as one index table), the fold, and the
+    :meth:`solvers.ilq.riccati.CompiledRiccati.backward`, as one index table), the fold, and the
     residual rows ``r``. The same compiled functions on the same numbers as the separate
     calls, so the results are bit-identical to them; Python makes one call per line-search
     trial instead of five. ``PA = 0, eps = 0`` linearizes at ``(Xr, Ur)`` itself (the
@@ -377,7 +377,7 @@ class CompiledTrial:
         r2 = r * r
         C, E = 0.5 * (self.quad.member @ r2), 0.5 * float(np.sum(r2))
         ok = bool(np.isfinite(PAo).all())
-        if not ok:  # singular stage: as _CompiledRiccati.backward, numpy with larger shifts
+        if not ok:  # singular stage: as CompiledRiccati.backward, numpy with larger shifts
             self.quad(X, U, p)  # fills Lam and Phi
             PAo, mu, ok = s._numpy_backward(mu0, delta)
         return X, U, C, E, PAo, mu, ok

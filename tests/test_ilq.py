@@ -28,13 +28,13 @@ from solvers.feedback_nash import FeedbackNashOptions, feedback_nash_check
 from solvers.ilq import (
     ILQOptions,
     ILQSolver,
-    _secant_step,
-    _smooth_kinks,
     from_stages,
     get_solver,
     solve_ilq,
     to_stages,
 )
+from solvers.ilq.iteration import _secant_step
+from solvers.ilq.kinks import _smooth_kinks
 from solvers.lm import solve_lm
 from solvers.result import Status
 

@@ -18,7 +18,8 @@ import scipy.linalg
 
 from epo_casadi import Acceleration, AgentSpec, GameSpec, PotentialGame
 from epo_casadi.dynamics import Dynamics
-from solvers.ilq import ILQSolver, _gershgorin, _ldl_pivots
+from solvers.ilq import ILQSolver
+from solvers.ilq.riccati import _gershgorin, _ldl_pivots
 
 DELTA = 1e-8  # ILQOptions().min_curvature, the documented default
 
