@@ -18,7 +18,8 @@ import time
 
 from epo_casadi.game import PotentialGame
 from scenarios.gamefile import example_path, load_game
-from solvers.compare import SOLVERS, parse_solver, setup_solver, solve_with
+from solvers.compare import parse_solver, setup_solver, solve_with
+from solvers.registry import SOLVERS
 
 
 def main(argv=None) -> None:

@@ -20,10 +20,11 @@ plus optional solver options. The schema, with every field, is documented in
           - {type: velocity_bound, weight: 5, lower: 0, upper: 2}
     pair_features:
       - {type: collision, weight: 10, every: 1}
-    solver:
+    solver:                     # options per registered solver (solvers.registry)
       lm: {steps: 200}          # solvers.lm.LMOptions fields
       ipopt: {max_iter: 500}    # solvers.ipopt.IpoptOptions fields
       ilq: {max_iter: 200}      # solvers.ilq.ILQOptions fields
+      sqp: {collision: true}    # solvers.sqp.SQPOptions fields
 
 Every problem in a file raises :class:`epo_casadi.SpecError` whose ``field`` is the
 path of the offending entry (``agents[1].radius``, ``agents[0].features[2].upper``,
@@ -98,7 +99,6 @@ _AGENT_KEYS = (
     "path",
     "features",
 )
-_SOLVERS = ("lm", "ipopt", "ilq")
 #: the rule on weights that the game layer (learning.layer.GameLayer) enforces, said the
 #: same way wherever a weight enters: game files, --set, the feature objects
 WEIGHT_RULE = " (weights must be >= 0)"
@@ -124,7 +124,8 @@ class GameFile:
     """A loaded game file.
 
     ``spec``: the game; ``params``: its default parameter vector ``p`` (layout in
-    :class:`epo_casadi.ParamLayout`); ``solver_options``: ``{"lm": {...}, "ipopt": {...}, "ilq": {...}}``
+    :class:`epo_casadi.ParamLayout`); ``solver_options``: ``{"lm": {...}, "ilq": {...}}``,
+    one entry per solver of :data:`solvers.registry.SOLVERS` the file gives options for,
     as validated plain dictionaries (pass one as ``options=`` to the solver);
     ``path``: the file it came from (``None`` for :func:`parse_game` without a source).
     """
@@ -140,12 +141,13 @@ class GameFile:
         return PotentialGame(self.spec)
 
     def options(self, solver: str, **overrides) -> Any:
-        """Options object of ``solver`` (``"lm"``, ``"ipopt"``, ``"ilq"``): file values, then
-        ``overrides``."""
-        if solver not in _SOLVERS:
-            raise SpecError("solver", f"expected one of {list(_SOLVERS)}, got {short_repr(solver)}")
+        """Options object of the registered solver ``solver`` (``"lm"``, ``"ipopt"``,
+        ``"ilq"``, ``"sqp"`` or a user's): file values, then ``overrides``."""
+        from solvers.registry import SOLVERS
+
+        entry = SOLVERS.entry(solver, "solver")
         values = {**self.solver_options.get(solver, {}), **overrides}
-        return _options_object(solver, values, f"solver.{solver}")
+        return entry.make_options(values, f"solver.{solver}")
 
     @property
     def name(self) -> str:
@@ -438,13 +440,19 @@ def _pairs(v: Any, where: str, names: Sequence[str]):
 
 
 def _solver(s: Any, spec: GameSpec) -> dict:
+    """The ``solver`` section: options per registered solver, each validated now (and
+    against the game where the solver checks that, e.g. bounds naming agents)."""
     if s is None:
         return {}
+    from solvers.registry import SOLVERS
+
     if not isinstance(s, Mapping):
         raise SpecError(
-            "solver", f"expected a mapping with 'lm', 'ipopt' and/or 'ilq', got {_short(s)}"
+            "solver",
+            f"expected a mapping solver name -> options (solvers: {SOLVERS.names()}), "
+            f"got {_short(s)}",
         )
-    _keys(s, "solver", _SOLVERS)
+    _keys(s, "solver", tuple(SOLVERS))
     out = {}
     for name, values in s.items():
         where = f"solver.{name}"
@@ -454,51 +462,12 @@ def _solver(s: Any, spec: GameSpec) -> dict:
             raise SpecError(where, f"expected a mapping of options, got {_short(values)}")
         values = dict(values)
         _check_finite(values, where)
-        opts = _options_object(name, values, where)  # validate now, keep the plain mapping
-        if name == "ipopt":
-            _check_bounds(opts, spec, where)
+        entry = SOLVERS[name]
+        opts = entry.make_options(values, where)  # validate now, keep the plain mapping
+        if entry.check_game is not None:
+            entry.check_game(opts, spec, where)
         out[name] = values
     return out
-
-
-def _check_bounds(opts, spec: GameSpec, where: str) -> None:
-    """IPOPT's per-agent bounds name agents of this game, with one entry per component."""
-    agents = {a.name: a for a in spec.agents}
-    for key, size, what in (("control_bounds", "nu", "control"), ("state_bounds", "nx", "state")):
-        for name, lo, _hi in getattr(opts, key) or ():
-            w = f"{where}.{key}.{name}"
-            if name not in agents:
-                raise SpecError(w, f"unknown agent; expected one of {list(agents)}")
-            dyn = agents[name].dynamics
-            n = getattr(dyn, size)
-            if len(lo) != n:
-                names = dyn.control_names if what == "control" else dyn.state_names
-                raise SpecError(
-                    w,
-                    f"expected [lower, upper] lists of {n} {what} entries ({', '.join(names)}), got {len(lo)}",
-                )
-
-
-def _options_object(solver: str, values: dict, where: str):
-    if solver == "lm":
-        from solvers.lm import LMOptions as cls
-    elif solver == "ilq":
-        from solvers.ilq import ILQOptions as cls
-    else:
-        from solvers.ipopt import IpoptOptions as cls
-    names = [f.name for f in fields(cls)]
-    unknown = sorted(set(values) - set(names), key=str)
-    if unknown:
-        raise SpecError(
-            f"{where}.{_keyname(unknown[0])}", f"unknown option; allowed: {sorted(names)}"
-        )
-    try:
-        return cls(**values)
-    except SpecError as e:  # "lm.steps" -> "solver.lm.steps"
-        tail = e.field.split(".", 1)[1] if e.field.startswith(f"{solver}.") else e.field
-        raise SpecError(f"{where}.{tail}" if tail != solver else where, e.message) from None
-    except (TypeError, ValueError) as e:
-        raise SpecError(where, str(e)) from None
 
 
 def _check_size(data: Any, where: str, limit: int | None = None) -> None:

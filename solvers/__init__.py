@@ -1,6 +1,9 @@
 """Numeric solvers on :class:`epo_casadi.PotentialGame`: LM, IPOPT, iLQ game, Nash certificate.
 
-No torch here. Every solver returns :class:`solvers.result.SolveResult`.
+No torch here. Every solver returns :class:`solvers.result.SolveResult` and is registered
+once in the solver table :data:`solvers.registry.SOLVERS` (name, entry function, options,
+equilibrium check), which the CLI, game files, ``epo compare`` and the multi-modal solver
+read; :func:`solve_game` solves with a solver by name, :func:`register_solver` adds one.
 """
 
 from .ilq import ILQOptions, solve_ilq
@@ -8,6 +11,7 @@ from .ipopt import IpoptOptions, IpoptSolver, solve_ipopt
 from .lm import LMOptions, solve_lm
 from .multimodal import MultiModalOptions, MultiModalResult, solve_multimodal
 from .nash import NashCertificate, NashOptions, nash_certificate
+from .registry import SOLVERS, SolverEntry, register_solver, solve_game, unregister_solver
 from .result import SolveResult, Status
 from .sqp import SQPOptions, SQPSolver, solve_sqp
 from .structured import StructuredGN
@@ -32,4 +36,9 @@ __all__ = [
     "SQPOptions",
     "SQPSolver",
     "solve_sqp",
+    "SOLVERS",
+    "SolverEntry",
+    "register_solver",
+    "unregister_solver",
+    "solve_game",
 ]

@@ -1,11 +1,13 @@
 """Solver comparison studies: games x solvers x initial strategies -> one table.
 
 :func:`run_comparison` solves every game (a :class:`~epo_casadi.game.PotentialGame` with its
-parameters ``p``) with every solver choice (``lm``, ``ipopt``, ``ilq``, ``sqp``, each with
-options) from every initial strategy, checks each solution with the equilibrium test that
-fits the solver, and returns a :class:`Comparison`: one :class:`Row` per (game, solver,
-init), written as Markdown (:meth:`Comparison.markdown`) or CSV (:meth:`Comparison.csv`),
-and the energy histories for the figures (:func:`plot_gaps`).
+parameters ``p``) with every solver choice (a name of the solver table
+:data:`solvers.registry.SOLVERS`, with options) from every initial strategy, checks each
+solution with the equilibrium test of its solver
+(:meth:`solvers.registry.SolverEntry.check`), and returns a :class:`Comparison`: one
+:class:`Row` per (game, solver, init), written as Markdown (:meth:`Comparison.markdown`)
+or CSV (:meth:`Comparison.csv`), and the energy histories for the figures
+(:func:`plot_gaps`).
 
 Time, one definition for every solver (columns ``setup_s`` and ``solve_s``)
     * ``setup_s``: building what the solver needs for this game and option structure, on a
@@ -14,19 +16,21 @@ Time, one definition for every solver (columns ``setup_s`` and ``solve_s``)
       Gauss-Newton backend and batched functions, one linearization; IPOPT: the NLP
       (``casadi.nlpsol``) and its helper functions; iLQ: the solver's CasADi functions
       (and the generated C with ``compiled=True``); SQP: the QP's CasADi functions, one
-      linearization and the OSQP set-up. Measured once per (game, solver) and repeated in
-      that pair's rows.
+      linearization and the OSQP set-up (each solver's ``prepare`` in the table; a
+      registered solver without one builds nothing ahead). Measured once per (game,
+      solver) and repeated in that pair's rows.
     * ``solve_s``: the solve call afterwards (the solver's own ``wall_time``), which reuses
       what the set-up built. The equilibrium check is timed apart (``check_s``).
 
 Equilibrium check per solver (column ``check``)
-    * ``open-loop`` for LM, IPOPT and SQP: the local open-loop Nash certificate
-      (:func:`solvers.nash.nash_certificate`); ``player_gain`` is the largest best-response
-      gap. It is the soft-penalty game's test: a solution on a hard bound or hard
-      collision constraint (IPOPT/SQP with bounds) is expected to fail it.
-    * ``feedback`` for iLQ: the sampled feedback Nash check
-      (:func:`solvers.feedback_nash.feedback_nash_check`); ``player_gain`` is the largest
-      own-cost decrease a player's policy deviation found.
+    * ``open-loop`` for LM, IPOPT and SQP (solvers registered with that equilibrium): the
+      local open-loop Nash certificate (:func:`solvers.nash.nash_certificate`);
+      ``player_gain`` is the largest best-response gap. It is the soft-penalty game's
+      test: a solution on a hard bound or hard collision constraint (IPOPT/SQP with
+      bounds) is expected to fail it.
+    * ``feedback`` for iLQ (solvers registered with that equilibrium): the sampled
+      feedback Nash check (:func:`solvers.feedback_nash.feedback_nash_check`);
+      ``player_gain`` is the largest own-cost decrease a player's policy deviation found.
     * ``none`` when the solve has no usable iterate (``nonfinite``, ``infeasible``,
       ``failed``) or checks are turned off.
 
@@ -51,10 +55,10 @@ import numpy as np
 from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.game import PotentialGame
 
+from .registry import SOLVERS
 from .result import Status, fmt_number
 
 __all__ = [
-    "SOLVERS",
     "COLUMNS",
     "SolverChoice",
     "InitChoice",
@@ -72,52 +76,20 @@ __all__ = [
     "plot_scaling",
 ]
 
-SOLVERS = ("lm", "ipopt", "ilq", "sqp")
-
-
-def _options_class(name: str):
-    if name == "lm":
-        from .lm import LMOptions
-
-        return LMOptions
-    if name == "ipopt":
-        from .ipopt import IpoptOptions
-
-        return IpoptOptions
-    if name == "ilq":
-        from .ilq import ILQOptions
-
-        return ILQOptions
-    if name == "sqp":
-        from .sqp import SQPOptions
-
-        return SQPOptions
-    raise SpecError("solver", f"unknown solver {short_repr(name)}; expected one of {list(SOLVERS)}")
-
-
-def _freeze(v):
-    if isinstance(v, dict):
-        return tuple(sorted((k, _freeze(x)) for k, x in v.items()))
-    if isinstance(v, list):
-        return tuple(_freeze(x) for x in v)
-    return v
-
 
 @dataclass(frozen=True)
 class SolverChoice:
-    """A solver name and its options (validated: unknown keys and bad values raise
-    :class:`SpecError` naming the field). ``label`` names the choice in tables."""
+    """A registered solver's name and its options (validated: unknown keys and bad values
+    raise :class:`SpecError` naming the field). ``label`` names the choice in tables."""
 
     name: str
     options: dict = field(default_factory=dict, hash=False, compare=False)
     label: str = ""
 
     def __post_init__(self):
-        cls = _options_class(self.name)
-        from .lm import check_options
-
-        opts = check_options(cls, dict(self.options), self.name)
-        object.__setattr__(self, "_opts", opts)
+        entry = SOLVERS.entry(self.name, "solver")
+        object.__setattr__(self, "_entry", entry)
+        object.__setattr__(self, "_opts", entry.make_options(dict(self.options), self.name))
         if not self.label:
             tail = ",".join(f"{k}={v}" for k, v in self.options.items())
             object.__setattr__(self, "label", f"{self.name}:{tail}" if tail else self.name)
@@ -126,6 +98,11 @@ class SolverChoice:
     def options_object(self):
         """The validated options dataclass."""
         return self._opts
+
+    @property
+    def entry(self):
+        """The solver's :class:`~solvers.registry.SolverEntry`."""
+        return self._entry
 
 
 def _split_top(text: str, sep: str = ",") -> list[str]:
@@ -155,10 +132,7 @@ def parse_solver(text: str) -> SolverChoice:
     if not isinstance(text, str) or not text.strip():
         raise SpecError("--solver", f"expected NAME or NAME:key=value,..., got {text!r}")
     name, _, rest = text.strip().partition(":")
-    if name not in SOLVERS:
-        raise SpecError(
-            "--solver", f"unknown solver {short_repr(name)}; expected one of {list(SOLVERS)}"
-        )
+    SOLVERS.entry(name, "--solver")
     values = {}
     for item in _split_top(rest):
         key, eq, raw = item.partition("=")
@@ -325,66 +299,21 @@ class Comparison:
 # --------------------------------------------------------------------------------------
 def setup_solver(choice: SolverChoice, game: PotentialGame, p: np.ndarray, u0: np.ndarray) -> None:
     """Build (on ``game``'s cache) what ``choice`` needs, and evaluate it once: the
-    ``setup_s`` of the module docstring."""
-    o = choice.options_object
-    if choice.name == "lm":
-        from .lm import batch_function, make_backend
-
-        be = make_backend(game, o)
-        U, P = game.check_inputs(u0, p)
-        be.linearize(U, P)
-        be.energy(U, P)
-        batch_function(game, "rollout", o.threads)(U, P)
-        batch_function(game, "agent_costs", o.threads)(U, P)
-    elif choice.name == "ipopt":
-        from .ipopt import _solver_for
-
-        _solver_for(game, o)
-    elif choice.name == "ilq":
-        from .ilq import get_solver
-
-        s = get_solver(game, None, o.hessian)
-        if o.compiled:
-            s.compile()
-    else:
-        from .sqp import _solver_for
-
-        _solver_for(game, o).prepare(p, u0)
+    ``setup_s`` of the module docstring (the solver's ``prepare``)."""
+    prepare = choice.entry.prepare
+    if prepare is not None:
+        prepare(game, p, u0, choice.options_object)
 
 
 def solve_with(choice: SolverChoice, game: PotentialGame, p: np.ndarray, u0: np.ndarray):
     """Solve one problem with ``choice`` (its entry function); the ``SolveResult``."""
-    o = choice.options_object
-    if choice.name == "lm":
-        from .lm import solve_lm
-
-        return solve_lm(game, p, u0, o)
-    if choice.name == "ipopt":
-        from .ipopt import solve_ipopt
-
-        return solve_ipopt(game, p, u0, o)
-    if choice.name == "ilq":
-        from .ilq import solve_ilq
-
-        return solve_ilq(game, p, u0, o)
-    from .sqp import solve_sqp
-
-    return solve_sqp(game, p, u0, o)
+    return choice.entry.solve(game, p, u0, choice.options_object)
 
 
 def _check(choice: SolverChoice, game: PotentialGame, p: np.ndarray, res):
     """(check name, ok, largest player gain, seconds)."""
-    t0 = time.perf_counter()
-    if choice.name == "ilq":
-        from .feedback_nash import check_ilq_result
-
-        c = check_ilq_result(game, p, res)
-        return "feedback", c.ok, float(np.max(c.gain)), time.perf_counter() - t0
-    from .nash import nash_certificate
-
-    c = nash_certificate(game, p=p, u=res.controls)
-    gap = float(np.max(c.best_response_gap)) if len(c.best_response_gap) else 0.0
-    return "open-loop", bool(c.ok), gap, time.perf_counter() - t0
+    c = choice.entry.check(game, p, res)
+    return c.kind, c.ok, c.gain, c.seconds
 
 
 def run_comparison(

@@ -8,9 +8,11 @@ right) and how often each is reached. Shapes follow :mod:`epo_casadi.game`.
 Steps of :func:`solve_multimodal`
     1. **Sample** ``n_samples`` initial joint strategies with a seeded
        ``numpy.random.Generator`` (:func:`sinusoid_sampler` unless ``sampler`` is given).
-    2. **Solve** each with iLQ (:func:`solvers.ilq.solve_ilq`, feedback Nash) or LM
-       (:func:`solvers.lm.solve_lm`, the potential minimizer; one batched call, by default
-       with the structured Riccati backend).
+    2. **Solve** them in one batched call of a solver of the table
+       (:data:`solvers.registry.SOLVERS`, those with ``multimodal``): iLQ
+       (:func:`solvers.ilq.solve_ilq`, feedback Nash), LM (:func:`solvers.lm.solve_lm`, the
+       potential minimizer, by default with the structured Riccati backend) or a
+       registered one.
     3. **Drop** failed solves (status not converged; ``accept_max_iter`` also keeps
        ``max_iter``) and solves whose smallest pairwise centre distance over ``k = 1..K``
        is below ``r_i + r_j - collision_tol``.
@@ -43,6 +45,7 @@ from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
 from .lm import check_options
+from .registry import SOLVERS
 from .result import SolveResult, Status
 
 __all__ = [
@@ -231,9 +234,11 @@ def solve_multimodal(
 ) -> MultiModalResult:
     """Solve ``game`` at ``p (n_p,)`` from ``n_samples`` sampled starts and cluster the modes.
 
-    ``solver``: ``"ilq"`` (``options``: :class:`solvers.ilq.ILQOptions`; ``costs``: custom
-    player costs, see :func:`solvers.ilq.solve_ilq`) or ``"lm"`` (``options``:
-    :class:`solvers.lm.LMOptions`; one batched solve). ``sampler(game, p, n, rng) ->
+    ``solver``: a registered solver the multi-modal solver may use (its entry's
+    ``multimodal``): ``"ilq"`` (``options``: :class:`solvers.ilq.ILQOptions`; ``costs``:
+    custom player costs, see :func:`solvers.ilq.solve_ilq`), ``"lm"`` (``options``:
+    :class:`solvers.lm.LMOptions`) or a user's; one batched solve of all samples with
+    the solver's options (its defaults when None). ``sampler(game, p, n, rng) ->
     (n, n_u)`` replaces :func:`sinusoid_sampler`. See the module docstring for the steps.
     """
     t0 = time.perf_counter()
@@ -241,10 +246,15 @@ def solve_multimodal(
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
         raise SpecError("n_samples", f"expected an integer >= 1, got {n_samples!r}")
-    if solver not in ("ilq", "lm"):
-        raise SpecError("solver", f"expected 'ilq' or 'lm', got {solver!r}")
-    if costs is not None and solver != "ilq":
-        raise SpecError("costs", "custom player costs need solver='ilq'")
+    entry = SOLVERS.entry(solver, "solver")
+    if not entry.multimodal:
+        usable = [n for n, e in SOLVERS.items() if e.multimodal]
+        raise SpecError(
+            "solver", f"expected a solver of many starts, one of {usable}, got {solver!r}"
+        )
+    if costs is not None and not entry.takes("costs"):
+        takers = [n for n, e in SOLVERS.items() if e.takes("costs")]
+        raise SpecError("costs", f"custom player costs need a solver of {takers}, not {solver!r}")
     mm = check_options(MultiModalOptions, clustering, "multimodal")
     n = int(n_samples)
     p = np.asarray(p, dtype=float)
@@ -259,16 +269,8 @@ def solve_multimodal(
             "sampler", f"expected initial strategies of shape ({n}, {game.n_u}), got {U0.shape}"
         )
     P = np.broadcast_to(p, (n, game.n_p))
-    if solver == "ilq":
-        from .ilq import solve_ilq
-
-        res = solve_ilq(game, P, U0, options=options, costs=costs)
-    else:
-        from .lm import LMOptions, solve_lm
-
-        res = solve_lm(
-            game, P, U0, options=LMOptions(backend="structured") if options is None else options
-        )
+    extra = {} if costs is None else {"costs": costs}
+    res = entry.solve(game, P, U0, options=options, **extra)
 
     status = np.asarray(res.status, dtype=object).reshape(n)
     good = np.array(

@@ -124,7 +124,8 @@ def _save_figure(path: Path, fig) -> None:
     "--solver",
     "solver_texts",
     multiple=True,
-    help="NAME[:key=value,...] with NAME in lm, ipopt, ilq, sqp (repeat; default: all four).",
+    help="NAME[:key=value,...], NAME a registered solver (lm, ipopt, ilq, sqp or your own; "
+    "repeat). Default: every registered solver.",
 )
 @click.option(
     "--init",
@@ -151,7 +152,6 @@ def compare(games, solver_texts, init_texts, out_dir, no_check, no_figures, scal
     """Compare solvers on GAMES (files, folders or example:NAME) from several starts."""
     from scenarios.files import check_output_file, ensure_dir, write_atomic
     from solvers.compare import (
-        SOLVERS,
         fit_slopes,
         parse_solver,
         plot_gaps,
@@ -159,6 +159,7 @@ def compare(games, solver_texts, init_texts, out_dir, no_check, no_figures, scal
         run_comparison,
         scaling_study,
     )
+    from solvers.registry import SOLVERS
 
     check_output_file(out_dir / "compare.md", "--out")  # a folder that can be written, first
     solvers = [parse_solver(s) for s in (solver_texts or SOLVERS)]

@@ -1,4 +1,4 @@
-"""``epo solve GAME.yaml``: solve a game file with LM, IPOPT or iLQ, certify, write JSON.
+"""``epo solve GAME.yaml``: solve a game file with a registered solver, certify, write JSON.
 
 The result file (``--out``) is one JSON object, documented in
 ``docs/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
@@ -6,14 +6,17 @@ The result file (``--out``) is one JSON object, documented in
 ``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
 ``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
 
-``--solver ilq`` solves for a feedback Nash equilibrium (:mod:`solvers.ilq`); its check is
-the feedback condition ``max |a| <= tol`` (``feedback_residual`` in the file), not the
-open-loop certificate, which is not computed for it. ``--modes N`` runs the multi-modal
-solver (:func:`solvers.multimodal.solve_multimodal`, ``--solver ilq`` or ``lm``) from ``N``
-seeded starts: the file describes the most likely mode's solve and lists every mode
-(``modes``: share, energy, costs, passing sides, member solves, states and controls);
-with no mode left (every solve dropped) the file holds the first sample's solve and an
-empty list, and the exit status is 1.
+``--solver`` names any solver of :data:`solvers.registry.SOLVERS` (``lm``, ``ipopt``,
+``ilq``, ``sqp`` or a registered one); the open-loop Nash certificate is computed for the
+solvers that find an open-loop equilibrium. ``--solver ilq`` solves for a feedback Nash
+equilibrium (:mod:`solvers.ilq`); its check is the feedback condition ``max |a| <= tol``
+(``feedback_residual`` in the file), not the open-loop certificate, which is not computed
+for it. ``--modes N`` runs the multi-modal solver
+(:func:`solvers.multimodal.solve_multimodal`, a solver the table marks ``multimodal``:
+``ilq``, ``lm`` or a registered one) from ``N`` seeded starts: the file describes the most
+likely mode's solve and lists every mode (``modes``: share, energy, costs, passing sides,
+member solves, states and controls); with no mode left (every solve dropped) the file
+holds the first sample's solve and an empty list, and the exit status is 1.
 
 Exit status of ``epo solve`` (also in ``docs/solvers.md``): 0 converged or stopped at the
 iteration limit (``max_iter``), 3 stalled (the solver could make no further progress but the
@@ -100,26 +103,17 @@ def _jsonable(v: Any) -> Any:
 
 
 def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, certify: bool = True):
-    """Solve one problem with ``solver`` (``"lm"``/``"ipopt"``/``"ilq"``); return
-    ``(result, certificate)``. The open-loop Nash certificate is computed for LM and IPOPT
-    only (iLQ's equilibrium is a feedback one: see :func:`result_dict`)."""
-    if solver == "lm":
-        from solvers.lm import solve_lm
+    """Solve one problem with the registered ``solver`` (``"lm"``, ``"ipopt"``, ``"ilq"``,
+    ``"sqp"``, ...); return ``(result, certificate)``. The open-loop Nash certificate is
+    computed for solvers of open-loop equilibria only (iLQ's equilibrium is a feedback one:
+    see :func:`result_dict`)."""
+    from solvers.registry import SOLVERS
 
-        res = solve_lm(game, p, options=options)
-    elif solver == "ipopt":
-        from solvers.ipopt import solve_ipopt
-
-        res = solve_ipopt(game, p, options=options)
-    elif solver == "ilq":
-        from solvers.ilq import solve_ilq
-
-        res = solve_ilq(game, p, options=options)
-    else:
-        raise SpecError("--solver", f"expected 'lm', 'ipopt' or 'ilq', got {solver!r}")
+    entry = SOLVERS.entry(solver, "--solver")
+    res = entry.solve(game, p, options=options)
     cert = None
     # no certificate of NaN/inf values, nor an open-loop one of a feedback equilibrium
-    if certify and res.status is not Status.NONFINITE and solver != "ilq":
+    if certify and res.status is not Status.NONFINITE and entry.equilibrium == "open-loop":
         from solvers.nash import nash_certificate
 
         cert = nash_certificate(game, p=p, u=res.controls)
@@ -310,27 +304,47 @@ def mode_lines(game: PotentialGame, modes: list[dict], n_samples: int, statuses:
     return lines
 
 
+class SolverName(click.ParamType):
+    """A name of the solver table (:data:`solvers.registry.SOLVERS`). It is checked when
+    the command runs, after the game file is loaded (so a solver that a module the file
+    imports registers is accepted); an unknown name is one error line listing the table."""
+
+    name = "solver"
+
+    def get_metavar(self, param, ctx=None) -> str:
+        """``[lm|ipopt|...]``: the table as it is when the help is shown."""
+        from solvers.registry import SOLVERS
+
+        return "[" + "|".join(SOLVERS) + "]"
+
+    def convert(self, value, param, ctx):
+        """The name as text (the command looks it up in the table)."""
+        return str(value)
+
+
 @click.command("solve")
 @click.argument("game_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--solver",
-    type=click.Choice(["lm", "ipopt", "ilq"]),
+    type=SolverName(),
     default="lm",
     show_default=True,
-    help="Levenberg-Marquardt, IPOPT or the iLQ feedback Nash solver.",
+    help="A registered solver: Levenberg-Marquardt, IPOPT, the iLQ feedback Nash solver, "
+    "SQP, or your own (solvers.registry).",
 )
 @click.option(
     "--steps",
     type=click.IntRange(min=0, max=MAX_STEPS),
     default=None,
-    help="Iteration limit (LM steps / IPOPT, iLQ max_iter); overrides the file's solver options.",
+    help="Iteration limit (LM steps / the others' max_iter); overrides the file's solver options.",
 )
 @click.option(
     "--modes",
     type=click.IntRange(min=1, max=10_000),
     default=None,
     metavar="N",
-    help="Multi-modal solve from N seeded starts (--solver ilq or lm): print and plot the modes.",
+    help="Multi-modal solve from N seeded starts (--solver ilq, lm or a registered one): "
+    "print and plot the modes.",
 )
 @click.option(
     "--seed",
@@ -379,19 +393,28 @@ def solve(
     """Solve GAME_FILE (YAML or JSON game file) and print a short summary."""
     from scenarios.gamefile import apply_settings, load_game
     from scenarios.plotting import check_image_path
+    from solvers.registry import SOLVERS
 
     t0 = time.perf_counter()
     check_output_file(out, "--out")  # before any work: nothing is solved for an unwritable path
     if plot is not None:
         check_output_file(check_image_path(plot, "--plot"), "--plot")
     gf = load_game(game_file)
+    entry = SOLVERS.entry(solver, "--solver")  # after the file: its modules may register one
     game = gf.game
     p = apply_settings(game, gf.params, settings)
-    over = {} if steps is None else {("steps" if solver == "lm" else "max_iter"): steps}
+    over = {}
+    if steps is not None:
+        if entry.iteration_limit is None:
+            raise SpecError("--steps", f"the solver {solver!r} has no iteration limit option")
+        over = {entry.iteration_limit: steps}
     opts = gf.options(solver, **over)
     if modes is not None:
-        if solver == "ipopt":
-            raise SpecError("--modes", "expected --solver ilq or lm (IPOPT has no batch mode)")
+        if not entry.multimodal:
+            usable = [n for n, e in SOLVERS.items() if e.multimodal]
+            raise SpecError(
+                "--modes", f"expected --solver one of {usable} (no multi-start mode for {solver!r})"
+            )
         return _solve_modes(game_file, game, p, solver, opts, modes, seed, out, plot, t0)
     res, cert = run_solve(game, p, solver, opts, certify=certificate)
     data = result_dict(game, p, res, cert, source=str(game_file))
