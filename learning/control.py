@@ -479,8 +479,9 @@ class NetworkPlanner:
         scene, frame = observation_scene(
             np.stack(self._ego), est.history, est.valid, self.spec, goals
         )
-        extra = world_member(self.world, "scene_fields")  # the map fields of the world's scenes
-        scene.update(extra(obs, est, frame, self.spec.recipe))
+        from scenarios.sim import scene_fields
+
+        scene.update(scene_fields(self.world, obs, est, frame, self.spec.recipe))  # map fields
         return scene, frame
 
     @torch.no_grad()
@@ -627,7 +628,7 @@ def _goal_reading(d: Path, cfg, game, schema: Mapping, world, scenario: str) -> 
         raise SpecError(
             f"{d / 'config.json'}.data.schema.goal_candidates",
             f"the model reads goal candidates and the planner cannot build them for scenario "
-            f"{scenario!r}: the world's scene_fields() must build them (World.scene_field_names)",
+            f"{scenario!r}: scenarios.sim.scene_fields must build them (World.scene_field_names)",
         )
     return reads
 

@@ -500,8 +500,8 @@ def map_fields(
     SDV's route and the other's lane around their positions), ``goal_candidates``
     ``(2, G, 2)`` along them, and ``vref`` ``(2,)`` (the turn's limit while the turn is in the
     SDV's window). The generator (:meth:`LeftTurnScenario.cut`, exact positions) and the
-    closed-loop planner (:meth:`scenarios.sim.left_turn.LeftTurnWorld.scene_fields`, the
-    other's estimate) build their scenes with it."""
+    closed-loop planner (:func:`closed_loop_scene_fields`, the other's estimate) build their
+    scenes with it."""
     s_e = _progress(np.asarray(ego_xy, float), pol.route)
     s_o = _progress(np.asarray(other_xy, float), world.other_route)
     win = np.linspace(-r.lane_behind, r.lane_ahead, r.lane_points)
@@ -512,6 +512,29 @@ def map_fields(
     turn_in_window = s_e + r.lane_ahead > t0 and s_e - r.lane_behind < t1
     vref = np.array([pol.v_turn if turn_in_window else pol.v_lim, pol.v_lim])
     return lanes, cands, vref
+
+
+def closed_loop_scene_fields(world, obs, est, frame, recipe) -> dict[str, np.ndarray]:
+    """The map fields of a left-turn scene (``lanes``, ``paths``, ``vref``,
+    ``goal_candidates``) for a trained planner in the closed loop, built as
+    :meth:`LeftTurnScenario.cut` builds them: lane windows and goal candidates along the
+    ego's route from its exact position and along the oncoming car's lane from its
+    *estimated* position (``est.states[0]``), speed limits from the ego's route, in
+    ``frame`` (``frame.points_in``). ``world``: a :class:`scenarios.sim.left_turn.LeftTurnWorld`
+    after ``reset``; ``recipe``: the run's dataset recipe (window lengths and point counts;
+    defaults where absent). Found by :func:`scenarios.sim.scene_fields`."""
+    known = {f.name for f in fields(LeftTurnRecipe)}
+    r = LeftTurnRecipe.from_dict({k: v for k, v in (recipe or {}).items() if k in known})
+    pol = SDVPolicy(world, r, "enter")  # the route, turn interval and speed limits
+    ego, other = np.asarray(obs.ego, float)[:2], np.asarray(est.states, float)[0, :2]
+    lanes, cands, vref = map_fields(r, world, pol, ego, other)
+    lanes = frame.points_in(lanes).astype(np.float32)
+    return {
+        "lanes": lanes,
+        "paths": lanes.copy(),
+        "vref": vref.astype(np.float32),
+        "goal_candidates": frame.points_in(cands).astype(np.float32),
+    }
 
 
 class LeftTurnScenario(Scenario):

@@ -25,6 +25,7 @@ import pytest
 import scenarios.closed_loop as closed_loop
 from epo_casadi.errors import OutputError, SpecError
 from scenarios.closed_loop import EpisodeResult, SimConfig, run_episodes
+from scenarios.closed_loop import loop as episode_loop
 from scenarios.sim import make_world
 from scenarios.sim.common import Character, Sensor
 from solvers.control.estimate import UKFEstimator, UKFOptions
@@ -304,7 +305,7 @@ def _fake_episode(fail):
 def test_a_run_where_every_episode_errored_exits_1(tmp_path, capsys, monkeypatch):
     """Class closed: every episode errored and ``epo simulate`` exited 0. Status 1 and one
     line with the count and the first error; summary.md says it too."""
-    monkeypatch.setattr(closed_loop, "run_episode", _fake_episode(lambda s: True))
+    monkeypatch.setattr(episode_loop, "run_episode", _fake_episode(lambda s: True))
     out = tmp_path / "o"
     rc, stdout, err = simulate(capsys, *QUICK, "--episodes", 2, "--workers", 1, "--out", out)
     assert rc == 1, err
@@ -312,7 +313,7 @@ def test_a_run_where_every_episode_errored_exits_1(tmp_path, capsys, monkeypatch
     assert err.strip().splitlines() == [f"error: {msg}"]
     assert msg in (out / "summary.md").read_text()
     # some errored: exit 0, one warning line, and summary.md names them
-    monkeypatch.setattr(closed_loop, "run_episode", _fake_episode(lambda s: s == 1))
+    monkeypatch.setattr(episode_loop, "run_episode", _fake_episode(lambda s: s == 1))
     out = tmp_path / "p"
     rc, _, err = simulate(capsys, *QUICK, "--episodes", 3, "--workers", 1, "--out", out)
     msg = "1 of 3 episodes ended in an error; the first, episode 1 (seed 1): RuntimeError"

@@ -71,13 +71,13 @@ def episode_unit(config, index: int, seed: int, keep_log: bool) -> EpisodeResult
     """Build the stack from ``config`` and run episode ``index`` with ``seed``; an exception
     becomes the outcome ``"error"`` with its message (the other episodes go on).
 
-    The episode is run by the package's ``scenarios.closed_loop.run_episode``, looked up
-    when called, so a replacement set there (a test's stand-in) is the one that runs."""
-    import scenarios.closed_loop as closed_loop
+    The episode is run by ``scenarios.closed_loop.loop.run_episode``, looked up when
+    called, so a replacement set there (a test's stand-in) is the one that runs."""
+    from . import loop
 
     try:
         world, estimator, planner, tracker = config.build()
-        return closed_loop.run_episode(
+        return loop.run_episode(
             world, estimator, planner, tracker, seed, index=index, keep_log=keep_log
         )
     except Exception as e:  # noqa: BLE001 - one broken episode must not lose the run

@@ -11,8 +11,8 @@ The world modules (and highway-env behind them) are imported on first use, so
 
 What a trained planner needs to know of the scenes a world plays lives here and in the
 worlds: :func:`world_scenario` (the dataset scenario of a world), :func:`dataset_frame`
-(the frame a dataset's samples are stored in) and each world's
-:meth:`~solvers.control.types.World.scene_fields` (the scene fields built from its map).
+(the frame a dataset's samples are stored in) and :func:`scene_fields` (the fields of a
+scene built from the world's map, by the dataset scenario that owns the scene's layout).
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ __all__ = [
     "world_class",
     "world_scenario",
     "dataset_frame",
+    "SCENE_BUILDERS",
+    "scene_fields",
 ]
 
 #: scenario name -> "module:Class"
@@ -45,6 +47,25 @@ FRAMES = ("world", "agent")
 #: the frame of a dataset scenario whose manifest states ``meta.frame`` in words rather than
 #: as one of :data:`FRAMES` (left-turn: "SDV at the origin, x along its heading, ...")
 SCENARIO_FRAMES = {"left-turn": "agent"}
+
+#: dataset scenario -> "module:function" building the map fields of its scenes in the closed
+#: loop, ``f(world, obs, est, frame, recipe) -> {field: array}`` (the scenario owns its layout)
+SCENE_BUILDERS = {"left-turn": "scenarios.left_turn:closed_loop_scene_fields"}
+
+
+def scene_fields(world, obs, est, frame, recipe) -> dict:
+    """The fields of a dataset scene that a trained planner cannot build from the
+    observation and the estimate itself (the world's ``scene_field_names``: e.g. lanes and
+    goal candidates from the map), built by the :data:`SCENE_BUILDERS` entry of the world's
+    dataset scenario (:func:`world_scenario`), as numpy arrays without the batch axis,
+    exactly as the dataset's generator writes them; ``{}`` for a scenario without one.
+    ``frame`` maps world points to the scene's frame (``frame.points_in(p)``); ``recipe``:
+    the run's dataset recipe (a mapping or None)."""
+    entry = SCENE_BUILDERS.get(world_scenario(world))
+    if entry is None:
+        return {}
+    module, fn = entry.split(":")
+    return getattr(importlib.import_module(module), fn)(world, obs, est, frame, recipe)
 
 
 def world_class(name: str) -> type:

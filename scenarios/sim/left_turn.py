@@ -71,7 +71,7 @@ seeded by ``reset(seed)``: an episode is bit-identical for a seed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -316,7 +316,8 @@ class LeftTurnWorld(HighwayWorld):
 
     name = "left-turn"
     dataset_scenario = "left-turn"
-    #: the map fields of a left-turn dataset scene (:meth:`scene_fields`)
+    #: the map fields of a left-turn dataset scene (built by
+    #: :func:`scenarios.left_turn.closed_loop_scene_fields`)
     scene_field_names = ("lanes", "paths", "vref", "goal_candidates")
 
     def __init__(self, options: LeftTurnOptions | None = None, **kw):
@@ -358,29 +359,6 @@ class LeftTurnWorld(HighwayWorld):
         """The ego's arc-length interval of :attr:`conflict` (the episode's zone, set by
         ``reset``; None before)."""
         return ego_interval(self.conflict)
-
-    def scene_fields(self, obs, est, frame, recipe) -> dict[str, np.ndarray]:
-        """The map fields of a left-turn scene (``lanes``, ``paths``, ``vref``,
-        ``goal_candidates``), built as :meth:`scenarios.left_turn.LeftTurnScenario.cut`
-        builds them: lane windows and goal candidates along the ego's route from its exact
-        position and along the oncoming car's lane from its *estimated* position
-        (``est.states[0]``), speed limits from the ego's route, in ``frame``
-        (``frame.points_in``). After ``reset``; ``recipe``: the run's dataset recipe
-        (window lengths and point counts; defaults where absent)."""
-        from scenarios.left_turn import LeftTurnRecipe, SDVPolicy, map_fields
-
-        known = {f.name for f in fields(LeftTurnRecipe)}
-        r = LeftTurnRecipe.from_dict({k: v for k, v in (recipe or {}).items() if k in known})
-        pol = SDVPolicy(self, r, "enter")  # the route, turn interval and speed limits
-        ego, other = np.asarray(obs.ego, float)[:2], np.asarray(est.states, float)[0, :2]
-        lanes, cands, vref = map_fields(r, self, pol, ego, other)
-        lanes = frame.points_in(lanes).astype(np.float32)
-        return {
-            "lanes": lanes,
-            "paths": lanes.copy(),
-            "vref": vref.astype(np.float32),
-            "goal_candidates": frame.points_in(cands).astype(np.float32),
-        }
 
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int) -> Observation:

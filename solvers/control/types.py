@@ -170,8 +170,8 @@ class World(Protocol):
     ``dataset_scenario`` (the dataset scenario whose scenes it plays, manifest
     ``scenario``), ``max_steps``, ``road_map`` (a :class:`scenarios.maps.RoadMap`, for
     figures), ``horizon`` / ``history`` (the steps a trained planner must predict / read,
-    where the world states them), ``scene_field_names`` and :meth:`conflict_zone`,
-    :meth:`scene_fields`.
+    where the world states them), ``scene_field_names`` (the fields of a dataset scene built
+    from its map, by :func:`scenarios.sim.scene_fields`) and :meth:`conflict_zone`.
     """
 
     dt: float
@@ -208,15 +208,6 @@ class World(Protocol):
         the zone it shares with the others (the metric ``time_to_clear``), or None."""
         ...
 
-    def scene_fields(self, obs: Observation, est: Estimate, frame: Any, recipe) -> dict:
-        """The fields of a dataset scene that a trained planner cannot build from the
-        observation and the estimate itself (``scene_field_names``: e.g. lanes and goal
-        candidates from the map), numpy arrays without the batch axis, exactly as the
-        dataset's generator writes them. ``frame`` maps world points to the scene's frame
-        (``frame.points_in(p)``); ``recipe``: the run's dataset recipe (a mapping or
-        None)."""
-        ...
-
 
 class WorldBase:
     """The defaults of :class:`World`'s optional members (see there)."""
@@ -232,9 +223,6 @@ class WorldBase:
     def conflict_zone(self) -> tuple[float, float] | None:
         return None
 
-    def scene_fields(self, obs: Observation, est: Estimate, frame: Any, recipe) -> dict:
-        return {}
-
 
 #: the optional members of World (their defaults are WorldBase's)
 OPTIONAL_MEMBERS = (
@@ -246,7 +234,6 @@ OPTIONAL_MEMBERS = (
     "history",
     "scene_field_names",
     "conflict_zone",
-    "scene_fields",
 )
 
 
