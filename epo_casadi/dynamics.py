@@ -110,6 +110,18 @@ def _plain(v):
 
 @dataclass(frozen=True)
 class Unicycle(Dynamics):
+    """Dynamically extended unicycle (``"unicycle"``), explicit Euler.
+
+    State ``(x, y, v, theta)``: position (m), speed along the heading (m/s), heading
+    (rad); control ``(a, omega)``: longitudinal acceleration (m/s^2), turn rate (rad/s)::
+
+        x' = x + v cos(theta) dt    y' = y + v sin(theta) dt
+        v' = v + a dt               theta' = theta + omega dt
+
+    The paper's dynamics (App. F.2, its unicycle equation). Features read velocity and
+    speed ``v``, acceleration ``a`` and turn rate ``omega``. No options.
+    """
+
     name = "unicycle"
     state_names: tuple[str, ...] = ("x", "y", "v", "theta")
     control_names: tuple[str, ...] = ("a", "omega")
@@ -135,6 +147,18 @@ class Unicycle(Dynamics):
 
 @dataclass(frozen=True)
 class DoubleIntegrator(Dynamics):
+    """Point mass in the plane (``"double_integrator"``), explicit Euler.
+
+    State ``(x, y, vx, vy)``: position (m), velocity (m/s); control ``(ax, ay)``:
+    acceleration (m/s^2)::
+
+        x' = x + vx dt    y' = y + vy dt    vx' = vx + ax dt    vy' = vy + ay dt
+
+    Features read the velocity as the two rows ``(vx, vy)``, the speed as
+    ``sqrt(vx^2 + vy^2 + 1e-12)`` and the acceleration as ``(ax, ay)``; it has no heading,
+    so turn-rate features are refused for it. No options.
+    """
+
     name = "double_integrator"
     state_names: tuple[str, ...] = ("x", "y", "vx", "vy")
     control_names: tuple[str, ...] = ("ax", "ay")
@@ -154,6 +178,18 @@ class DoubleIntegrator(Dynamics):
 
 @dataclass(frozen=True)
 class KinematicBicycle(Dynamics):
+    """Kinematic bicycle about the rear axle (``"bicycle"``), explicit Euler.
+
+    State ``(x, y, v, theta)``: rear-axle position (m), speed (m/s), heading (rad);
+    control ``(a, delta)``: longitudinal acceleration (m/s^2), steering angle (rad)::
+
+        x' = x + v cos(theta) dt    y' = y + v sin(theta) dt
+        v' = v + a dt               theta' = theta + v tan(delta) / L dt
+
+    ``wheelbase`` ``L`` (m, > 0; default 2.7). Features read velocity and speed ``v``,
+    acceleration ``a`` and the turn rate ``v tan(delta) / L``.
+    """
+
     name = "bicycle"
     state_names: tuple[str, ...] = ("x", "y", "v", "theta")
     control_names: tuple[str, ...] = ("a", "delta")

@@ -93,6 +93,13 @@ class AgentContext:
 
 
 def smooth_distance(p, q):
+    """Smooth Euclidean distance ``sqrt(||p - q||^2 + eps)`` of two CasADi columns.
+
+    ``p``, ``q``: columns of equal length (positions in metres); the result is a scalar
+    expression in metres. ``eps`` is :data:`DIST_EPS` (1e-9 m^2), so the distance is at
+    least about 3e-5 m and its derivatives stay finite where ``p = q`` (the gradient is
+    zero there instead of undefined). Used by ``collision`` and ``path``.
+    """
     d = p - q
     return ca.sqrt(ca.sumsqr(d) + DIST_EPS)
 
@@ -258,6 +265,13 @@ def _cols(fn, ks):
 
 @dataclass(frozen=True)
 class Goal(Feature):
+    """Terminal goal: ``p(x_K) - g``, the position of the last state minus the goal (m).
+
+    Two rows at step ``K``; ``g`` is the agent's reference block ``goal.<agent>`` (2
+    entries, metres, the world frame), settable per solve or predicted by a network.
+    ``c_goal`` of the paper (App. F.3). Fields: ``label``, ``weight`` (:class:`Feature`).
+    """
+
     kind: ClassVar[str] = "goal"
 
     def refs(self):
@@ -275,6 +289,14 @@ class Goal(Feature):
 
 @dataclass(frozen=True)
 class Velocity(Feature):
+    """Velocity penalty: the velocity of ``x_k`` for ``k = 1..K``, as the dynamics define it.
+
+    One row per step (``v``, m/s) for heading models (unicycle, bicycle), two (``vx``,
+    ``vy``) for the double integrator (:meth:`Dynamics.velocity`). Pulls the agent
+    towards standing still, so it is weighed against ``goal`` or ``reference_velocity``.
+    ``c_vel`` of the paper (App. F.3). Fields: ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "velocity"
 
     def steps(self, K):
@@ -289,6 +311,13 @@ class Velocity(Feature):
 
 @dataclass(frozen=True)
 class Acceleration(Feature):
+    """Control effort: the acceleration control ``u_k`` for ``k = 0..K-1``.
+
+    One row per step (longitudinal ``a``, m/s^2) for heading models, two (``ax``, ``ay``)
+    for the double integrator (:meth:`Dynamics.acceleration`). ``c_acc`` of the paper
+    (App. F.3). Fields: ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "acceleration"
 
     def steps(self, K):
@@ -303,6 +332,13 @@ class Acceleration(Feature):
 
 @dataclass(frozen=True)
 class Jerk(Feature):
+    """Jerk: ``(a_{k+1} - a_k) / dt`` for ``k = 0..K-2``, the finite difference of the
+    acceleration control (m/s^3), one row per step and acceleration component.
+
+    ``c_jerk`` of the paper (App. F.3). Needs ``K >= 2`` to have rows. Fields: ``label``,
+    ``weight``.
+    """
+
     kind: ClassVar[str] = "jerk"
 
     def steps(self, K):
@@ -321,6 +357,14 @@ class Jerk(Feature):
 
 @dataclass(frozen=True)
 class TurnRate(Feature):
+    """Turn rate at ``(x_k, u_k)`` for ``k = 0..K-1`` (rad/s), one row per step.
+
+    The unicycle's ``omega``; the bicycle's ``v tan(delta) / L``
+    (:meth:`Dynamics.turn_rate`). The double integrator has no heading, so the feature is
+    refused for it (:class:`~epo_casadi.errors.SpecError`). ``c_turnr`` of the paper
+    (App. F.3). Fields: ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "turn_rate"
 
     def steps(self, K):
@@ -336,6 +380,13 @@ class TurnRate(Feature):
 
 @dataclass(frozen=True)
 class TurnAcceleration(Feature):
+    """Turn acceleration: ``(w_{k+1} - w_k) / dt`` for ``k = 0..K-2`` with ``w_k`` the turn
+    rate at ``(x_k, u_k)`` (rad/s^2), one row per step.
+
+    Heading models only, as :class:`TurnRate`. ``c_turnacc`` of the paper (App. F.3).
+    Fields: ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "turn_acceleration"
 
     def steps(self, K):
@@ -356,6 +407,14 @@ class TurnAcceleration(Feature):
 
 @dataclass(frozen=True)
 class ReferenceVelocity(Feature):
+    """Reference speed: ``speed(x_k) - v_ref`` for ``k = 1..K`` (m/s), one row per step.
+
+    ``v_ref`` is the agent's reference block ``vref.<agent>`` (1 entry, m/s, e.g. a lane's
+    speed limit). For the double integrator the speed is ``sqrt(vx^2 + vy^2)`` (with
+    ``1e-12`` under the root). ``c_vref`` of the paper (App. F.3). Fields: ``label``,
+    ``weight``.
+    """
+
     kind: ClassVar[str] = "reference_velocity"
 
     def refs(self):
@@ -458,6 +517,14 @@ class _BoundFeature(Feature):
 
 @dataclass(frozen=True)
 class VelocityBound(_BoundFeature):
+    """Soft speed bound: ``max(0, s_k - upper) + max(0, lower - s_k)`` with ``s_k`` the
+    speed of ``x_k``, for ``k = 1..K`` (m/s), one row per step; zero inside the bounds.
+
+    ``lower``, ``upper`` (m/s; default ``-inf`` and ``inf``): at least one finite,
+    ``lower < upper``. The energy ``1/2 (w max(0, g))^2`` is the quadratic penalty of the
+    paper's soft constraints, ``c_velb`` (App. F.3). Fields also ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "velocity_bound"
 
     def steps(self, K):
@@ -469,6 +536,14 @@ class VelocityBound(_BoundFeature):
 
 @dataclass(frozen=True)
 class AccelerationBound(_BoundFeature):
+    """Soft bound on the acceleration control: ``max(0, a_k - upper) + max(0, lower - a_k)``
+    for ``k = 0..K-1`` (m/s^2), one row per step and acceleration component (two for the
+    double integrator, each bounded alone); zero inside the bounds.
+
+    ``lower``, ``upper`` (m/s^2) as in :class:`VelocityBound`. ``c_accb`` of the paper
+    (App. F.3). Fields also ``label``, ``weight``.
+    """
+
     kind: ClassVar[str] = "acceleration_bound"
 
     def steps(self, K):
@@ -480,6 +555,15 @@ class AccelerationBound(_BoundFeature):
 
 @dataclass(frozen=True)
 class TurnRateBound(_BoundFeature):
+    """Soft bound on the turn rate ``w_k`` at ``(x_k, u_k)``:
+    ``max(0, w_k - upper) + max(0, lower - w_k)`` for ``k = 0..K-1`` (rad/s), one row per
+    step; zero inside the bounds.
+
+    ``lower``, ``upper`` (rad/s) as in :class:`VelocityBound`; heading models only, as
+    :class:`TurnRate`. ``c_turnrb`` of the paper (App. F.3). Fields also ``label``,
+    ``weight``.
+    """
+
     kind: ClassVar[str] = "turn_rate_bound"
 
     def steps(self, K):
@@ -527,6 +611,22 @@ class PairFeature:
 
 @dataclass(frozen=True)
 class Collision(PairFeature):
+    """Collision avoidance of a pair of circles:
+    ``max(0, r_i + r_j + margin - dist(p_i(x_k), p_j(x_k)))`` (m), one row per step
+    ``k = every, 2 every, ..., <= K``.
+
+    ``r_i``, ``r_j`` are the agents' radii (m; a parameter block where the game makes them
+    one), ``dist`` is :func:`smooth_distance`; the row is zero while the circles, grown by
+    ``margin``, do not overlap. It is symmetric in ``(i, j)``, as a potential game's pair
+    terms must be (module docstring). The paper's interaction feature ``d(.)`` (Eq. (7)),
+    a point-to-point distance active when the circles overlap, evaluated every step in RPI
+    and every fifth in exiD (App. F.3).
+
+    Fields: ``label``, ``weight`` (>= 0, the default value of every pair's weight
+    ``w.<a>-<b>.<label>``), ``pairs`` (agent-name pairs; ``None``: every pair), ``every``
+    (integer >= 1, the step stride) and ``margin`` (m, >= 0).
+    """
+
     kind: ClassVar[str] = "collision"
     every: int = 1
     margin: float = 0.0  #: safety distance (m) added to r_i + r_j

@@ -562,6 +562,16 @@ def agent_radius(agent: AgentSpec, refs: dict):
 # --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ParamBlock:
+    """One named block of the flat parameter vector ``p`` (:class:`ParamLayout`).
+
+    ``name``: the block's name (``x0.robot``, ``w.robot.goal``, ``w.robot-ped.collision``;
+    the naming of the module docstring); ``group``: its kind, one of
+    :attr:`ParamLayout.GROUPS`; ``start``, ``size``: its entries are
+    ``p[start : start + size]`` (:attr:`slice`); ``default``: ``size`` default values (in
+    their entries' units: m, m/s, rad, weights); ``entries``: one readable name per entry
+    (``x0.robot.v``).
+    """
+
     name: str  # e.g. "x0.robot", "w.robot.goal", "w.robot-ped.collision"
     group: str  # "x0" | "goal" | "vref" | "path" | "radius" | "feature" | "w_own" | "w_pair"
     start: int

@@ -36,6 +36,14 @@ __all__ = [
 
 @dataclass(frozen=True)
 class LossWeights:
+    """The scaling factors of ``L = lambda_1 L_imit + lambda_2 L_goal + lambda_3 L_prob``.
+
+    ``imitation`` (``lambda_1``), ``goal`` (``lambda_2``, used only by a model with a goal
+    decoder) and ``probability`` (``lambda_3``), plain numbers. The defaults ``(1, 0.1,
+    0.1)`` are the paper's (Sec. 4.3; values in App. F.4); :func:`marginal_loss` defaults
+    to ``probability=1``.
+    """
+
     imitation: float = 1.0  #: lambda_1
     goal: float = 0.1  #: lambda_2 (used by a goal decoder; RPI gives the goals)
     probability: float = 0.1  #: lambda_3

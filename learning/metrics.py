@@ -94,23 +94,51 @@ def agent_mean(v, mask=None):
 
 
 def min_ade(pred, gt, mask=None) -> torch.Tensor:
+    """Marginal minADE per sample, ``(B,)`` (metres, the units of the positions).
+
+    For each agent the smallest, over the ``M`` modes, mean over the ``T`` steps of the
+    distance ``||pred - gt||_2``; then the mean over the agents of ``mask`` (every agent
+    without one; a sample with no agent in ``mask`` gives 0). Each agent picks its own
+    best mode. ``pred`` ``(B, M, N, T, 2)``, ``gt`` ``(B, N, T, 2)``, ``mask`` ``(B, N)``
+    boolean or ``None``; arrays or tensors; a wrong shape raises ``ValueError``.
+    The paper's minADE (Sec. 5).
+    """
     pred, gt, mask = _check(pred, gt, mask)
     per_agent = _dist(pred, gt).mean(-1).min(dim=1).values  # (B, N)
     return agent_mean(per_agent, mask)
 
 
 def min_fde(pred, gt, mask=None) -> torch.Tensor:
+    """Marginal minFDE per sample, ``(B,)`` (metres): :func:`min_ade` at the last step only.
+
+    For each agent the smallest, over the modes, distance at step ``T - 1``; then the mean
+    over the agents of ``mask``. Shapes and checks as :func:`min_ade`. The paper's minFDE
+    (Sec. 5).
+    """
     pred, gt, mask = _check(pred, gt, mask)
     per_agent = _dist(pred, gt)[..., -1].min(dim=1).values
     return agent_mean(per_agent, mask)
 
 
 def min_sade(pred, gt, mask=None) -> torch.Tensor:
+    """Joint (scene) minSADE per sample, ``(B,)`` (metres).
+
+    For each mode the mean over the agents of ``mask`` and the ``T`` steps of the distance
+    ``||pred - gt||_2``; then the smallest over the ``M`` modes, so one mode must fit every
+    agent at once (``pred``'s modes are joint scenes; marginal predictions go through
+    :func:`marginal_to_joint` first). Shapes and checks as :func:`min_ade`. The paper's
+    minSADE (Sec. 5).
+    """
     pred, gt, mask = _check(pred, gt, mask)
     return agent_mean(_dist(pred, gt).mean(-1), mask).min(dim=1).values
 
 
 def min_sfde(pred, gt, mask=None) -> torch.Tensor:
+    """Joint (scene) minSFDE per sample, ``(B,)`` (metres): :func:`min_sade` at the last
+    step only (the mean over the agents of ``mask`` of the distance at step ``T - 1``, then
+    the smallest over the modes). Shapes and checks as :func:`min_ade`. The paper's minSFDE
+    (Sec. 5).
+    """
     pred, gt, mask = _check(pred, gt, mask)
     return agent_mean(_dist(pred, gt)[..., -1], mask).min(dim=1).values
 

@@ -112,6 +112,14 @@ def harden(cmd: click.Command) -> click.Command:
 
 
 class LazyGroup(click.Group):
+    """The ``epo`` group: lists the subcommands of :data:`COMMANDS` and imports a
+    subcommand's module only when it is run or its help is shown, so ``epo --help`` stays
+    fast and ``epo solve`` never imports torch.
+
+    A command whose module cannot be imported (a broken install, a missing optional
+    dependency) becomes one that prints what is missing and exits with status 1.
+    """
+
     def list_commands(self, ctx):
         return sorted(COMMANDS)
 

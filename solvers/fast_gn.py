@@ -34,7 +34,8 @@ structure, never by parameter values: ``p`` is an input; ``fused_sweep`` and
 take a staged form with the same arithmetic: ``K`` calls of one small SX function per stage
 (Riccati step, backward sweep, forward sweep; stage blocks are exchanged in one pattern
 for all stages), which compiles at ``-O1`` in a fraction of the time of the unrolled graph,
-while the interpreter runs the unrolled graph, where each call would cost a microsecond.
+while the interpreter runs the unrolled graph, where a call per stage would cost more
+than the stage's arithmetic.
 From stage size :data:`SCHUR_KERNEL_MIN_STAGE_SIZE` on, the dense part of the Riccati step
 (Cholesky factor of the control block, ``Y``, the Schur complement ``P``) is hand-written C
 with loops the compiler vectorizes (:data:`SCHUR_KERNEL_C`, linked into ``fused_solve``),
@@ -46,25 +47,26 @@ stage's outputs (its residual rows, ``H_k``, ``c_k``, ``FG_k``) become one SX fu
 the window of stages they depend on, stages with the same function form a group mapped over
 its stages (three groups for the crossing and left-turn games: first, middle, terminal),
 the rollout is the game's and ``J'r`` is the adjoint sweep as ``K`` calls of one stage
-function (:func:`_staged_linearize`). Compiler CPU for N = 4, K = 40: 13.5 s with the
-one-graph linearization, 3.5 s staged (2.9 s before the sweep and diag libraries are
-needed), at a cost of about 5 % in the step; the two-unicycle RPI game keeps the one graph
-(5 s, 1.16x faster than staged in a batch). Steps equal the interpreted structured and
-dense backends up to rounding (the Riccati solve uses a Cholesky factor where
+function (:func:`_staged_linearize`). Staging cuts the compile time several-fold at a
+cost of a few percent in the step; the two-unicycle RPI game keeps the one graph, whose
+step is faster there (compile times and step costs of both forms: docs/bench_lm.md,
+"Scaling with N and K, twelve agents, first compile"). Steps equal the interpreted
+structured and dense backends up to rounding (the Riccati solve uses a Cholesky factor where
 :class:`StructuredGN` inverts; tested to 1e-12); the staged linearization gives the
 one-graph numbers bit for bit (the same SX operations per stage).
 
 Cost
-    The unrolled graph grows with ``K (nz + m)^3`` scalar instructions; CasADi's SX virtual
-    machine runs about 3 ns per instruction, generated C at ``-O1`` about 0.4 ns. Measured
-    (``bench/bench_lm.py``, crossing game, K = 40, CPU per problem and step): generated C
-    is 5.8x (two agents), 3.7x (four), 4.8x (eight) and 6.0x (twelve) faster than
-    :class:`StructuredGN` with generated C in a batch of 64, 16x, 11x, 7x and 5.4x for one
-    problem; interpreted it is 2 to 5x faster for one problem and 20 to 25 % slower in a
-    batch of 64 (numpy amortizes its per-stage calls over the batch, the SX interpreter
-    does not). At twelve agents (d = 72) the Riccati stage as unrolled SX has 101k
-    instructions (29 us, 1.2 of the 1.6 ms of a step); with the C elimination it takes
-    about 10 us (``Q`` 3 us, the kernel 6.5 us with AVX2) and the step 0.77 ms. Above :data:`MAX_STAGE_SIZE` (interpreted) or
+    The unrolled graph grows with ``K (nz + m)^3`` scalar instructions, which generated C
+    runs several times faster than CasADi's SX virtual machine. With generated C the step
+    is several times cheaper than :class:`StructuredGN` with generated C, in a batch and,
+    up to eight agents, more so for one problem; interpreted it is cheaper for one problem
+    and dearer in a large batch (numpy amortizes its per-stage calls over the batch, the SX
+    interpreter does not). At twelve agents (d = 72) the Riccati stage as unrolled SX has
+    101k instructions and takes most of the step; the C elimination
+    (:data:`SCHUR_KERNEL_MIN_STAGE_SIZE`) leaves 12k of them in SX. The measurements, with
+    their commands (``bench/bench_lm.py``, crossing game, K = 40, per path, agent count
+    and batch size), are in docs/bench_lm.md, a summary in docs/benchmarks.md ("One LM
+    step"). Above :data:`MAX_STAGE_SIZE` (interpreted) or
     :data:`MAX_STAGE_SIZE_COMPILED` (generated C), or when :class:`StructuredGN` itself
     falls back to the dense solve (short horizons, rows coupling many stages), the backend
     delegates to :class:`StructuredGN` and says why in :attr:`FusedGN.fallback`.
@@ -115,16 +117,18 @@ __all__ = [
 MAX_STAGE_SIZE = 24
 #: The same limit with ``compiled=True``, where only the staged graphs are built (one SX
 #: function per stage): 12 unicycles (d = 72), the largest measured, whose Riccati step
-#: (101k instructions) takes 10 s of compiler CPU at ``-O1`` (d = 48: 32k instructions) as
-#: SX; with the C elimination (:data:`SCHUR_KERNEL_MIN_STAGE_SIZE`) its SX part has 12k.
+#: has 101k SX instructions (d = 48: 32k), the largest part of the compile time (measured
+#: in docs/bench_lm.md); with the C elimination (:data:`SCHUR_KERNEL_MIN_STAGE_SIZE`) its
+#: SX part has 12k.
 MAX_STAGE_SIZE_COMPILED = 72
 #: The compiled backend uses the staged linearization when its stage functions have more
 #: SX instructions than this, summed over the stages (about 0.89 of the one-graph
-#: ``fused_linearize``, which is then not built). The one graph's compile time grows about
-#: 0.3 ms per instruction (four unicycles, K = 20: 14.4k staged, 16k in one graph, 5.3 s
-#: of compiler CPU for the libraries; staged 1.9 s), while the two-unicycle RPI game
-#: (K = 40: 10.9k staged, 12.3k in one graph) keeps the one graph, 1.16x faster per step in
-#: a batch of 64 and compiled in 5 s.
+#: ``fused_linearize``, which is then not built). The one graph's compile time grows with
+#: its instruction count and the staged form compiles in a fraction of it, at a small cost
+#: per step: four unicycles at K = 20 (14.4k staged, 16k in one graph) are staged, while
+#: the two-unicycle RPI game (K = 40: 10.9k staged, 12.3k in one graph) keeps the one
+#: graph, faster per step in a batch (compile times and steps: docs/bench_lm.md, "Scaling
+#: with N and K, twelve agents, first compile").
 STAGED_MIN_INSTRUCTIONS = 12_500
 #: Largest number of distinct stage functions of the staged linearization (compile time
 #: grows with it); a game with more falls back to the one-graph ``fused_linearize``.
@@ -134,9 +138,9 @@ MAX_STAGE_GROUPS = 12
 #: ``P = Q_zz - Y'Y``: the dense part, about 90 % of the stage's instructions) in the
 #: hand-written C loops of :data:`SCHUR_KERNEL_C` (``-O3``, vectorized) instead of the
 #: unrolled SX graph; ``Q`` itself stays SX (it exploits the block-diagonal dynamics).
-#: Measured (crossing game, K = 40, CPU per problem and step, B = 64): d = 12 (two
-#: unicycles) 10 % slower with the kernel, so not used; d = 24 7 % faster; d = 48 and 72
-#: 1.4x and 2x faster, and the solve library compiles in less time.
+#: The kernel makes the step slower at d = 12 (two unicycles), faster from d = 24 on, the
+#: more so the larger the stage (measured in docs/bench_lm.md, "The Riccati elimination
+#: in C").
 SCHUR_KERNEL_MIN_STAGE_SIZE = 24
 
 
@@ -701,8 +705,8 @@ def _joint_u_index(game: PotentialGame, L: StageLayout) -> np.ndarray:
 #: contiguous rows (``Y`` is held transposed), so ``-O3`` vectorizes it. With gcc 11 or
 #: later on x86-64 Linux it is compiled twice, for the baseline and for ``x86-64-v3``
 #: (AVX2, FMA), and the loader picks the one the CPU runs (``target_clones``), so a
-#: shared cache stays portable; the AVX2 version took 6.5 instead of 11 us per stage at
-#: d = 72 on this machine.
+#: shared cache stays portable (the AVX2 version is the faster: docs/bench_lm.md, "The
+#: Riccati elimination in C").
 SCHUR_KERNEL_C = r"""
 #include <math.h>
 #if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && defined(__x86_64__) && \

@@ -127,6 +127,16 @@ class Command:
 
 @runtime_checkable
 class Estimator(Protocol):
+    """Role of the closed loop that turns observations into filtered states of the others.
+
+    ``reset(obs, dt)`` before an episode: starts one track per row of ``obs.others``
+    (``dt``: the planning period in seconds, > 0) and returns the first :class:`Estimate`;
+    ``update(obs)`` once per period afterwards, with the same number of rows (``NaN``
+    rows while an agent is not observed). Both return an :class:`Estimate` of ``N - 1``
+    agents in the unicycle state ``(x, y, v, theta)``. The built-in one is
+    :class:`solvers.control.estimate.UKFEstimator`.
+    """
+
     def reset(self, obs: Observation, dt: float) -> Estimate: ...
 
     def update(self, obs: Observation) -> Estimate: ...
