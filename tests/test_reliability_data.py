@@ -19,17 +19,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from learning.data import SceneDataset
-from learning.models import ModelConfig
-from learning.train import (
+from learning.checkpoint import (
     CHECKSUM_MAGIC,
     CheckpointError,
-    TrainConfig,
     UncheckedCheckpointWarning,
     load_checkpoint,
-    load_model,
-    train,
 )
+from learning.data import SceneDataset
+from learning.models import ModelConfig
+from learning.train import TrainConfig, load_model, train
 from scenarios import dataset as ds
 from scenarios.dataset import DatasetError
 from tests.helpers import cli, one_error_line, proc_alive, proc_children
@@ -157,7 +155,9 @@ def test_readers_refuse_a_changed_shard_and_hash_once(tmp_path, monkeypatch, cap
     ds.generate(ToyScenario(), d, seed=4, progress=False)
     calls = []
     real = ds.sha256_file
-    monkeypatch.setattr(ds, "sha256_file", lambda p, *a: calls.append(Path(p).name) or real(p))
+    monkeypatch.setattr(
+        ds.shards, "sha256_file", lambda p, *a: calls.append(Path(p).name) or real(p)
+    )
     shards = ds.read_manifest(d)["splits"]["train"]["shards"]
     ds.load_split(d, "train")
     assert sorted(calls) == sorted(shards)  # each shard hashed once

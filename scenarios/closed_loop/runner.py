@@ -238,7 +238,7 @@ def _resume(d: Path, episodes: int, seed: int, keep_logs, done: dict, logs: dict
 
 def _run(job, todo, n_todo, seed, engine_args, d, progress, label, done, logs) -> None:
     """Run the episodes ``todo`` on the engine, writing each result as it comes in."""
-    from scenarios.dataset import _iter_dask, _iter_local
+    from scenarios.dataset.engine import _iter_dask, _iter_local
 
     engine, workers, client, address, scheduler_timeout = engine_args
     bar = it = None
