@@ -672,7 +672,7 @@ def _per_problem(f, args_in, reps):
 
 
 def bench_vjp(args):
-    from learning.layer import MAX_COMPILED_INSTRUCTIONS, layer_functions
+    from learning.layer_core import MAX_COMPILED_INSTRUCTIONS, layer_functions
     from solvers.codegen import compile_functions
     from solvers.fast_vjp import staged_step_vjp, staged_vjp_info
 

@@ -3,7 +3,7 @@
 What one closed-loop period costs (``torch.set_num_threads(1)``, ``OPENBLAS_NUM_THREADS=1``,
 ``EPO_THREADS=1``), p50 / p99 over ``--calls`` calls after ``--warmup`` warm-up calls:
 
-(a) the network as a planner (:class:`learning.control.NetworkPlanner.plan`: scene building,
+(a) the network as a planner (:class:`learning.planner.NetworkPlanner.plan`: scene building,
     encoder, decoders, the game layer, the most likely mode, the plan in the world frame) at
     the paper's CARLA layer setting (App. F.3/F.4: ``S = 20`` LM steps, ``alpha = 1``,
     ``lambda = 10``; networks at half width: ``hist_width = lane_width = 32``,
@@ -58,8 +58,9 @@ from epo_casadi import (  # noqa: E402
     Velocity,
 )
 from epo_casadi import Path as PathFeature  # noqa: E402
-from learning.control import NetworkPlanner, SceneSpec  # noqa: E402
 from learning.models import ModelConfig, build_model  # noqa: E402
+from learning.observation import SceneSpec  # noqa: E402
+from learning.planner import NetworkPlanner  # noqa: E402
 from solvers.control.types import AgentTask, Estimate, Observation  # noqa: E402
 
 PERIOD = 0.1  # s, the planning period

@@ -2,7 +2,7 @@
 
 The names below are imported on first use (``from learning import GameLayer`` imports
 :mod:`learning.layer` then): ``import learning`` imports no submodule, and a user of the
-layer or the models does not import the closed-loop planner (:mod:`learning.control`) nor
+layer or the models does not import the closed-loop planner (:mod:`learning.planner`) nor
 the TGL model (:mod:`learning.tgl`).
 """
 

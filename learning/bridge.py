@@ -5,7 +5,7 @@ contract in :mod:`epo_casadi.game`: ``u`` ``(..., n_u)``, ``p`` ``(..., n_p)`` -
 ``x`` ``(..., n_x)``, the ``k = 0`` block being the initial state) as a torch op. The
 forward pass is one mapped CasADi call over the flattened batch (no Python loop per
 problem or time step); the backward pass is the vector-Jacobian product of the same graph
-(:func:`learning.layer.layer_functions` ``"rollout_vjp"``, one reverse sweep), so the
+(:func:`learning.layer_core.layer_functions` ``"rollout_vjp"``, one reverse sweep), so the
 gradient is exact for any dynamics, built-in or a user's (``docs/extending.md``). It
 computes in float64 and returns the promoted input dtype, on the input's device (CPU
 inside). Double backward is not supported.
@@ -25,7 +25,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 from solvers.batch import BatchFunction
 
-from .layer import layer_functions
+from .layer_core import layer_functions
 
 __all__ = ["GameRollout"]
 

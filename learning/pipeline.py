@@ -47,6 +47,85 @@ class PipelineResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
+def _checked_workers(samples, epochs, seed, kinds, workers) -> int:
+    """Refuse bad counts and kinds; the generation processes (default: usable cores)."""
+    for name, v, lo in (("samples", samples, 1), ("epochs", epochs, 1), ("seed", seed, 0)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise SpecError(name, f"expected an integer >= {lo}, got {v!r}")
+    bad = [k for k in kinds if k not in ("epo", "sc", "vlstm")]
+    if bad or not kinds:
+        raise SpecError("kinds", f"expected some of 'epo', 'sc', 'vlstm', got {list(kinds)!r}")
+    if workers is None:
+        try:
+            workers = max(1, len(os.sched_getaffinity(0)))
+        except AttributeError:  # pragma: no cover - non-Linux
+            workers = max(1, os.cpu_count() or 1)
+    return workers
+
+
+def _generate(data_dir: Path, samples, seed, workers, recipe_overrides, progress, echo):
+    """Stage 1: the RPI dataset; ``(recipe, counts)``, refused when a split is empty."""
+    from scenarios.dataset import generate
+    from scenarios.rpi import RPIRecipe, RPIScenario
+
+    t0 = time.perf_counter()
+    recipe = RPIRecipe.for_samples(samples, **(recipe_overrides or {}))
+    rep = generate(RPIScenario(recipe), data_dir, seed=seed, workers=workers, progress=progress)
+    dt = time.perf_counter() - t0
+    c = rep.counts
+    echo(
+        f"data: {data_dir}: train {c['train']}, val {c['val']}, test {c['test']} samples "
+        f"({recipe.main_games} main games, {dt:.1f} s)"
+    )
+    if min(c.values()) == 0:
+        raise SpecError("samples", f"a split got no samples ({c}); ask for more samples")
+    return recipe, c, dt
+
+
+def _train_all(out: Path, data_dir: Path, kinds, recipe, settings: dict, seconds, echo):
+    """Stage 2: one run per model kind under ``out/runs``; ``{kind: run folder}``."""
+    from .models import ModelConfig
+    from .train import TrainConfig, train
+
+    runs: dict[str, Path] = {}
+    for kind in kinds:
+        t0 = time.perf_counter()
+        cfg = TrainConfig(
+            model=ModelConfig(kind=kind, modes=recipe.modes, **settings["model_overrides"]),
+            epochs=settings["epochs"],
+            batch_size=settings["batch_size"],
+            lr=settings["lr"],
+            seed=settings["seed"],
+        )
+        run = out / "runs" / f"{kind}-seed{settings['seed']}"
+        res = train(data_dir, run, cfg, progress=settings["progress"], threads=settings["threads"])
+        seconds[f"train_{kind}"] = time.perf_counter() - t0
+        runs[kind] = run
+        last = res.history[-1]
+        echo(
+            f"train {kind}: {run}: {res.epochs} epochs, {res.steps} steps, loss {last['train_loss']:.4g}, "
+            f"val minSADE {last['val_minSADE']:.3f} m ({seconds[f'train_{kind}']:.1f} s)"
+        )
+    return runs
+
+
+def _figures(out: Path, data_dir: Path, runs: dict[str, Path]) -> tuple[int, list[Path]]:
+    """Stage 4: a test sample with two valid modes if there is one, drawn with every run's
+    predictions and CV's; ``(sample index, files)`` (the loss curves included)."""
+    from scenarios.dataset import load_split
+
+    from .show import show_predictions
+
+    valid = load_split(data_dir, "test", fields=["mode_valid"])["mode_valid"]
+    two = [i for i in range(len(valid)) if valid[i].all()]
+    index = two[len(two) // 2] if two else 0
+    files = [
+        show_predictions(run, data_dir, index, out / "figures" / f"{kind}-test{index}.png")
+        for kind, run in [*runs.items(), ("cv", "cv")]
+    ]
+    return index, files + [run / "loss.png" for run in runs.values()]
+
+
 def run_pipeline(
     out_dir: str | os.PathLike = "epo-pipeline",
     samples: int = 1200,
@@ -69,63 +148,29 @@ def run_pipeline(
     ``model_overrides``: :class:`~learning.models.ModelConfig` fields (e.g. widths);
     ``workers``: generation processes (default: usable cores); ``threads``: torch threads.
     """
-    from scenarios.dataset import check_output_dir, generate
-    from scenarios.rpi import RPIRecipe, RPIScenario
+    from scenarios.dataset import check_output_dir
+    from scenarios.files import write_atomic
 
     from .evaluate import evaluate
-    from .models import ModelConfig
-    from .show import show_predictions
-    from .train import TrainConfig, train
 
-    for name, v, lo in (("samples", samples, 1), ("epochs", epochs, 1), ("seed", seed, 0)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise SpecError(name, f"expected an integer >= {lo}, got {v!r}")
-    bad = [k for k in kinds if k not in ("epo", "sc", "vlstm")]
-    if bad or not kinds:
-        raise SpecError("kinds", f"expected some of 'epo', 'sc', 'vlstm', got {list(kinds)!r}")
-    if workers is None:
-        try:
-            workers = max(1, len(os.sched_getaffinity(0)))
-        except AttributeError:  # pragma: no cover - non-Linux
-            workers = max(1, os.cpu_count() or 1)
+    workers = _checked_workers(samples, epochs, seed, kinds, workers)
     out = check_output_dir(out_dir)  # an existing file (or a path into one) is refused
     data_dir = out / "data"
     seconds: dict[str, float] = {}
     t_all = time.perf_counter()
-
-    # ---- 1. data
-    t0 = time.perf_counter()
-    recipe = RPIRecipe.for_samples(samples, **(recipe_overrides or {}))
-    rep = generate(RPIScenario(recipe), data_dir, seed=seed, workers=workers, progress=progress)
-    seconds["generate"] = time.perf_counter() - t0
-    c = rep.counts
-    echo(
-        f"data: {data_dir}: train {c['train']}, val {c['val']}, test {c['test']} samples "
-        f"({recipe.main_games} main games, {seconds['generate']:.1f} s)"
+    recipe, c, seconds["generate"] = _generate(
+        data_dir, samples, seed, workers, recipe_overrides, progress, echo
     )
-    if min(c.values()) == 0:
-        raise SpecError("samples", f"a split got no samples ({c}); ask for more samples")
-
-    # ---- 2. training
-    runs: dict[str, Path] = {}
-    for kind in kinds:
-        t0 = time.perf_counter()
-        cfg = TrainConfig(
-            model=ModelConfig(kind=kind, modes=recipe.modes, **(model_overrides or {})),
-            epochs=epochs,
-            batch_size=batch_size,
-            lr=lr,
-            seed=seed,
-        )
-        run = out / "runs" / f"{kind}-seed{seed}"
-        res = train(data_dir, run, cfg, progress=progress, threads=threads)
-        seconds[f"train_{kind}"] = time.perf_counter() - t0
-        runs[kind] = run
-        last = res.history[-1]
-        echo(
-            f"train {kind}: {run}: {res.epochs} epochs, {res.steps} steps, loss {last['train_loss']:.4g}, "
-            f"val minSADE {last['val_minSADE']:.3f} m ({seconds[f'train_{kind}']:.1f} s)"
-        )
+    settings = {
+        "epochs": epochs,
+        "batch_size": batch_size,
+        "lr": lr,
+        "seed": seed,
+        "model_overrides": model_overrides or {},
+        "progress": progress,
+        "threads": threads,
+    }
+    runs = _train_all(out, data_dir, kinds, recipe, settings, seconds, echo)
 
     # ---- 3. evaluation
     t0 = time.perf_counter()
@@ -136,18 +181,9 @@ def run_pipeline(
     echo("")
     echo(table)
 
-    # ---- 4. figures: a test sample with two valid modes if there is one
     t0 = time.perf_counter()
-    from scenarios.dataset import load_split
-
-    valid = load_split(data_dir, "test", fields=["mode_valid"])["mode_valid"]
-    two = [i for i in range(len(valid)) if valid[i].all()]
-    index = two[len(two) // 2] if two else 0
-    for kind, run in [*runs.items(), ("cv", "cv")]:
-        files.append(
-            show_predictions(run, data_dir, index, out / "figures" / f"{kind}-test{index}.png")
-        )
-    files += [run / "loss.png" for run in runs.values()]
+    index, figures = _figures(out, data_dir, runs)
+    files += figures
     seconds["figures"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_all
 
@@ -165,8 +201,6 @@ def run_pipeline(
         "seconds": seconds,
         "figure_index": index,
     }
-    from scenarios.files import write_atomic
-
     write_atomic(out / "pipeline.json", json.dumps(info, indent=1) + "\n")
     files.append(out / "pipeline.json")
     echo(

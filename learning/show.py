@@ -47,47 +47,23 @@ def load_sample(data_dir: str | os.PathLike, split: str, index: int) -> tuple:
     return game, batch, raw, agents
 
 
-def show_predictions(
-    run_dir: str | os.PathLike,
-    data_dir: str | os.PathLike,
-    index: int,
-    out_png: str | os.PathLike,
-    split: str = "test",
-    checkpoint: str = "best",
-) -> Path:
-    """Draw sample ``index`` of ``split`` with the predictions of a run (or ``"cv"``) to ``out_png``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Circle
-    from matplotlib.ticker import FuncFormatter, NullFormatter
-
-    game, batch, raw, agents = load_sample(data_dir, split, index)
+def _model_of(run_dir, game, n_modes: int, checkpoint: str):
+    """``(model, label, kind)``: a run's model, or the constant-velocity baseline (``"cv"``)."""
     if str(run_dir) == "cv" and not Path(run_dir).is_dir():
-        model, label, kind = ConstantVelocity(game.K, int(raw["future"].shape[0])), "CV", "cv"
-    else:
-        from .train import load_model
+        return ConstantVelocity(game.K, n_modes), "CV", "cv"
+    from .train import load_model
 
-        model, cfg, _ = load_model(run_dir, game, which=checkpoint)
-        label, kind = method_label(cfg.model), cfg.model.kind
-    with torch.no_grad():
-        pos, probs, out = predict(model, batch)
-    if probs.ndim == 3:
-        pos, probs = marginal_to_joint(pos, probs)
-    pos, probs = pos[0].numpy(), probs[0].numpy()  # (M, N, T, 2), (M,)
-    gt = batch["gt"][0].numpy()  # (N, T, 2)
+    model, cfg, _ = load_model(run_dir, game, which=checkpoint)
+    return model, method_label(cfg.model), cfg.model.kind
+
+
+def _draw_scene(ax, game, batch, raw, agents, gt) -> None:
+    """Lanes, histories, agent discs and given goals, the other dataset modes, the truth."""
+    from matplotlib.patches import Circle
+
     hist = batch["history"][0].numpy()  # (H+1, N, 4)
     hvalid = batch["history_valid"][0].numpy()
-    M, N = pos.shape[:2]
-    show_weights = kind == "epo"
-
-    fig = Figure(figsize=(14 if show_weights else 7.5, 8))
-    FigureCanvasAgg(fig)
-    if show_weights:
-        gs = fig.add_gridspec(N + 1, 2, width_ratios=[1.25, 1], hspace=0.65, wspace=0.18)
-        ax = fig.add_subplot(gs[:, 0])
-    else:
-        ax = fig.add_subplot(1, 1, 1)
-
+    N = hist.shape[1]
     # ---- map (scenes with lanes, e.g. exiD-format): lane polylines in light grey
     if "lanes" in batch:
         lanes = batch["lanes"][0].numpy()
@@ -132,7 +108,12 @@ def show_predictions(
         ax.plot(
             xy[:, 0], xy[:, 1], "--", color="0.15", lw=2.5, label="ground truth" if i == 0 else None
         )
-    given_goals = batch["goals"][0].numpy() if "goals" in batch else None
+
+
+def _draw_modes(ax, out, pos, probs, hist, gt):
+    """A goal decoder's goals and the predicted modes, most likely first; returns the
+    decoded goals ``(M, N, 2)`` or None."""
+    M, N = pos.shape[:2]
     decoded = None
     if isinstance(out, dict) and out.get("decoded_goals", False):  # a goal decoder's goals
         decoded = out["goals"][0].detach().numpy()  # (M, N, 2)
@@ -164,14 +145,11 @@ def show_predictions(
                 ms=6,
                 label=f"mode {m}: p={probs[m]:.2f}, SADE {sade:.2f} m" if i == 0 else None,
             )
-    pts = np.concatenate(
-        [
-            hist[..., :2].reshape(-1, 2),
-            gt.reshape(-1, 2),
-            pos.reshape(-1, 2),
-        ]
-        + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
-    )
+    return decoded
+
+
+def _fit_view(ax, pts: np.ndarray) -> None:
+    """Equal-aspect limits around ``pts`` (a 3:1 view for an elongated scene), grid, labels."""
     lo, hi = pts.min(0), pts.max(0)
     mid, half = (lo + hi) / 2, np.full(2, max(float((hi - lo).max()) / 2, 1.0) + 0.5)
     narrow = int(np.argmin(hi - lo))
@@ -183,58 +161,100 @@ def show_predictions(
     ax.grid(alpha=0.3)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, framealpha=0.9)
-    info = [f"{split}[{index}]"]
-    for k in ("main_game", "step"):
-        if k in raw:
-            info.append(f"{k} {int(raw[k])}")
-    ax.set_title(f"{label}: " + ", ".join(info), fontsize=11)
 
-    # ---- weights (ours)
-    if show_weights:
-        p = out["params"][0].detach().numpy()  # (M, n_p)
-        names = list(game.params.names)
-        true = (
-            np.asarray(raw["params"])
-            if "params" in raw and len(raw["params"]) == len(names)
-            else None
+
+def _draw_weights(fig, gs, out, game, raw, probs, agents) -> None:
+    """Ours' predicted game weights per mode (one panel per agent, one pairwise), log scale,
+    with the dataset game's weights where the sample stores them."""
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    M = len(probs)
+    p = out["params"][0].detach().numpy()  # (M, n_p)
+    names = list(game.params.names)
+    true = (
+        np.asarray(raw["params"]) if "params" in raw and len(raw["params"]) == len(names) else None
+    )
+    own = game.params.group("w_own")
+    pair = game.params.group("w_pair")
+    panels = []
+    for i, a in enumerate(game.agent_names):
+        idx = [j for j in own if names[j].startswith(f"w.{a}.")]
+        panels.append((f"{agents[i]}: own weights", idx, [names[j][len(f"w.{a}.") :] for j in idx]))
+    panels.append(("pairwise weights", list(pair), [names[j][2:] for j in pair]))
+    width_max = max(len(idx) for _, idx, _ in panels)
+    for row, (title, idx, ticks) in enumerate(panels):
+        axw = fig.add_subplot(gs[row, 1])
+        x = np.arange(len(idx))
+        width = 0.8 / M
+        for m in range(M):
+            axw.bar(
+                x + (m - (M - 1) / 2) * width,
+                p[m, idx],
+                width,
+                color=MODE_COLORS[m % len(MODE_COLORS)],
+                label=f"mode {m} (p={probs[m]:.2f})",
+            )
+        if true is not None:
+            axw.plot(x, true[idx], "kx", ms=8, mew=2, label="dataset game")
+        axw.set_yscale("log")
+        axw.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axw.yaxis.set_minor_formatter(NullFormatter())
+        axw.set_xlim(-0.6, width_max - 0.4)
+        axw.set_xticks(x)
+        axw.set_xticklabels(
+            [t.replace("_", " ") for t in ticks], fontsize=8, rotation=20, ha="right"
         )
-        own = game.params.group("w_own")
-        pair = game.params.group("w_pair")
-        panels = []
-        for i, a in enumerate(game.agent_names):
-            idx = [j for j in own if names[j].startswith(f"w.{a}.")]
-            panels.append(
-                (f"{agents[i]}: own weights", idx, [names[j][len(f"w.{a}.") :] for j in idx])
-            )
-        panels.append(("pairwise weights", list(pair), [names[j][2:] for j in pair]))
-        width_max = max(len(idx) for _, idx, _ in panels)
-        for row, (title, idx, ticks) in enumerate(panels):
-            axw = fig.add_subplot(gs[row, 1])
-            x = np.arange(len(idx))
-            width = 0.8 / M
-            for m in range(M):
-                axw.bar(
-                    x + (m - (M - 1) / 2) * width,
-                    p[m, idx],
-                    width,
-                    color=MODE_COLORS[m % len(MODE_COLORS)],
-                    label=f"mode {m} (p={probs[m]:.2f})",
-                )
-            if true is not None:
-                axw.plot(x, true[idx], "kx", ms=8, mew=2, label="dataset game")
-            axw.set_yscale("log")
-            axw.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-            axw.yaxis.set_minor_formatter(NullFormatter())
-            axw.set_xlim(-0.6, width_max - 0.4)
-            axw.set_xticks(x)
-            axw.set_xticklabels(
-                [t.replace("_", " ") for t in ticks], fontsize=8, rotation=20, ha="right"
-            )
-            axw.set_title(title, fontsize=10)
-            axw.grid(alpha=0.3, axis="y")
-            if row == 0:
-                axw.legend(fontsize=7, ncol=M + 1, loc="lower left", bbox_to_anchor=(0, 1.12))
+        axw.set_title(title, fontsize=10)
+        axw.grid(alpha=0.3, axis="y")
+        if row == 0:
+            axw.legend(fontsize=7, ncol=M + 1, loc="lower left", bbox_to_anchor=(0, 1.12))
+
+
+def show_predictions(
+    run_dir: str | os.PathLike,
+    data_dir: str | os.PathLike,
+    index: int,
+    out_png: str | os.PathLike,
+    split: str = "test",
+    checkpoint: str = "best",
+) -> Path:
+    """Draw sample ``index`` of ``split`` with the predictions of a run (or ``"cv"``) to ``out_png``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    game, batch, raw, agents = load_sample(data_dir, split, index)
+    model, label, kind = _model_of(run_dir, game, int(raw["future"].shape[0]), checkpoint)
+    with torch.no_grad():
+        pos, probs, out = predict(model, batch)
+    if probs.ndim == 3:
+        pos, probs = marginal_to_joint(pos, probs)
+    pos, probs = pos[0].numpy(), probs[0].numpy()  # (M, N, T, 2), (M,)
+    gt = batch["gt"][0].numpy()  # (N, T, 2)
+    hist = batch["history"][0].numpy()  # (H+1, N, 4)
+    N = pos.shape[1]
+    show_weights = kind == "epo"
+
+    fig = Figure(figsize=(14 if show_weights else 7.5, 8))
+    FigureCanvasAgg(fig)
+    gs = None
+    if show_weights:
+        gs = fig.add_gridspec(N + 1, 2, width_ratios=[1.25, 1], hspace=0.65, wspace=0.18)
+        ax = fig.add_subplot(gs[:, 0])
+    else:
+        ax = fig.add_subplot(1, 1, 1)
+    _draw_scene(ax, game, batch, raw, agents, gt)
+    given_goals = batch["goals"][0].numpy() if "goals" in batch else None
+    decoded = _draw_modes(ax, out, pos, probs, hist, gt)
+    pts = np.concatenate(
+        [hist[..., :2].reshape(-1, 2), gt.reshape(-1, 2), pos.reshape(-1, 2)]
+        + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
+    )
+    _fit_view(ax, pts)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, framealpha=0.9)
+    info = [f"{split}[{index}]"] + [f"{k} {int(raw[k])}" for k in ("main_game", "step") if k in raw]
+    ax.set_title(f"{label}: " + ", ".join(info), fontsize=11)
+    if show_weights:
+        _draw_weights(fig, gs, out, game, raw, probs, agents)
     from scenarios.plotting import save_figure
 
     return save_figure(fig, Path(out_png), "out_png", dpi=100, bbox_inches="tight")

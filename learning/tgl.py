@@ -420,16 +420,33 @@ class TGLProblem:
         The energy is ``sum_f w_f ||R_f U_i - t_f||^2``: ``P`` is block diagonal (one
         ``2K x 2K`` block per agent, a diagonal for the slacks).
         """
-        N, K, dt = self.N, self.K, self.dt
-        B = x0.shape[0]
         f64 = torch.float64
         x0, w_own, w_pair = x0.to(f64), w_own.to(f64), w_pair.to(f64)
         goals, vref = goals.to(f64), vref.to(f64)
-        lin = linear_dynamics(x0.detach(), K, dt)
+        lin = linear_dynamics(x0.detach(), self.K, self.dt)
+        P, q = self._cost(x0, w_own, w_pair, goals, vref, lin)
+        A_rows, lo_rows, hi_rows = self._bound_rows(x0, lin)
+        if self.n_slack:
+            collisions = self._collision_rows(x0, lin, radii)
+            for rows, more in zip((A_rows, lo_rows, hi_rows), collisions, strict=True):
+                rows.extend(more)
+        return {
+            "P": P,
+            "q": q,
+            "A": torch.cat(A_rows, 1),
+            "lo": torch.cat(lo_rows, 1),
+            "hi": torch.cat(hi_rows, 1),
+            "lin": lin,
+        }
+
+    def _cost(self, x0, w_own, w_pair, goals, vref, lin) -> tuple[torch.Tensor, torch.Tensor]:
+        """``P`` ``(B, n, n)`` and ``q`` ``(B, n)`` of the energy (float64 inputs)."""
+        N, K, dt = self.N, self.K, self.dt
+        B = x0.shape[0]
+        f64 = torch.float64
         nu, C, K2 = self.n_controls, self.n_slack, 2 * K
         n = nu + C
-        dev = x0.device
-        eye = torch.eye(K2, dtype=f64, device=dev)
+        eye = torch.eye(K2, dtype=f64, device=x0.device)
         Jg = lin["J_pos"][:, :, -1]  # (B, N, 2, 2K): final position
         Jv = lin["J_v"]  # (K, 2K)
         D = (eye[2::2] - eye[0:-2:2]) / dt  # jerk rows (a_{k+1} - a_k) / dt, (K-1, 2K)
@@ -453,9 +470,18 @@ class TGLProblem:
         if C:
             ws = 2 * (w_pair + WEIGHT_FLOOR).repeat_interleave(len(self.steps), dim=1)
             P[:, nu:, nu:] = torch.diag_embed(ws)
-        # constraints
+        return P, q
+
+    def _bound_rows(self, x0, lin) -> tuple[list, list, list]:
+        """Constraint rows ``(A, lo, hi)`` of the control bounds and the speed limits."""
+        N, K = self.N, self.K
+        B = x0.shape[0]
+        f64 = torch.float64
+        nu, C, K2 = self.n_controls, self.n_slack, 2 * K
+        n = nu + C
+        Jv = lin["J_v"]  # (K, 2K)
         A_rows, lo_rows, hi_rows = [], [], []
-        ctrl = torch.eye(nu, n, dtype=f64, device=dev)
+        ctrl = torch.eye(nu, n, dtype=f64, device=x0.device)
         A_rows.append(ctrl[0::2].expand(B, -1, -1))  # accelerations of all agents
         lo_rows.append(x0.new_full((B, nu // 2), self.accel[0]))
         hi_rows.append(x0.new_full((B, nu // 2), self.accel[1]))
@@ -472,40 +498,42 @@ class TGLProblem:
             A_rows.append(Av)  # v_k - v_0 within [min(lo, v0), max(hi, v0)] - v0
             lo_rows.append(torch.clamp(lo_v - v0, max=0.0) if np.isfinite(lo_v) else v0 * 0 - _INF)
             hi_rows.append(torch.clamp(hi_v - v0, min=0.0) if np.isfinite(hi_v) else v0 * 0 + _INF)
-        if C:
-            S = len(self.steps)
-            ks = torch.as_tensor(self.steps, device=dev) - 1
-            pc, J = lin["pos_c"][:, :, ks], lin["J_pos"][:, :, ks]  # (B, N, S, 2[, 2K])
-            Ac = x0.new_zeros(B, C, n)
-            lc = x0.new_zeros(B, C)
-            for c, (i, j) in enumerate(self.pairs):
-                if radii is None:
-                    reach = self.radii[i] + self.radii[j] + self.margin
-                else:
-                    reach = (radii[:, i] + radii[:, j]).to(f64)[:, None] + self.margin
-                d = pc[:, i] - pc[:, j]  # (B, S, 2) on the reference rollouts
-                nrm = d.norm(dim=-1, keepdim=True)
-                e = torch.tensor([1.0, 0.0], dtype=f64, device=dev)
-                nv = torch.where(nrm > 1e-9, d / nrm.clamp(min=1e-9), e)  # (B, S, 2)
-                r = slice(c * S, (c + 1) * S)
-                Ac[:, r, i * K2 : (i + 1) * K2] = (nv[..., None] * J[:, i]).sum(2)
-                Ac[:, r, j * K2 : (j + 1) * K2] = -(nv[..., None] * J[:, j]).sum(2)
-                lc[:, r] = reach - (nv * d).sum(-1)
-            Ac[:, :, nu:] = torch.eye(C, dtype=f64, device=dev)
-            A_rows.append(Ac)
-            lo_rows.append(lc)
-            hi_rows.append(x0.new_full((B, C), _INF))
-            A_rows.append(torch.eye(n, dtype=f64, device=dev)[nu:].expand(B, -1, -1))  # s >= 0
-            lo_rows.append(x0.new_zeros(B, C))
-            hi_rows.append(x0.new_full((B, C), _INF))
-        return {
-            "P": P,
-            "q": q,
-            "A": torch.cat(A_rows, 1),
-            "lo": torch.cat(lo_rows, 1),
-            "hi": torch.cat(hi_rows, 1),
-            "lin": lin,
-        }
+        return A_rows, lo_rows, hi_rows
+
+    def _collision_rows(self, x0, lin, radii) -> tuple[list, list, list]:
+        """Constraint rows ``(A, lo, hi)`` of the linearized collision constraints with their
+        slacks, and of ``s >= 0`` (only for games with pairs)."""
+        K = self.K
+        B = x0.shape[0]
+        f64 = torch.float64
+        dev = x0.device
+        nu, C, K2 = self.n_controls, self.n_slack, 2 * K
+        n = nu + C
+        S = len(self.steps)
+        ks = torch.as_tensor(self.steps, device=dev) - 1
+        pc, J = lin["pos_c"][:, :, ks], lin["J_pos"][:, :, ks]  # (B, N, S, 2[, 2K])
+        Ac = x0.new_zeros(B, C, n)
+        lc = x0.new_zeros(B, C)
+        for c, (i, j) in enumerate(self.pairs):
+            if radii is None:
+                reach = self.radii[i] + self.radii[j] + self.margin
+            else:
+                reach = (radii[:, i] + radii[:, j]).to(f64)[:, None] + self.margin
+            d = pc[:, i] - pc[:, j]  # (B, S, 2) on the reference rollouts
+            nrm = d.norm(dim=-1, keepdim=True)
+            e = torch.tensor([1.0, 0.0], dtype=f64, device=dev)
+            nv = torch.where(nrm > 1e-9, d / nrm.clamp(min=1e-9), e)  # (B, S, 2)
+            r = slice(c * S, (c + 1) * S)
+            Ac[:, r, i * K2 : (i + 1) * K2] = (nv[..., None] * J[:, i]).sum(2)
+            Ac[:, r, j * K2 : (j + 1) * K2] = -(nv[..., None] * J[:, j]).sum(2)
+            lc[:, r] = reach - (nv * d).sum(-1)
+        Ac[:, :, nu:] = torch.eye(C, dtype=f64, device=dev)
+        eye_n = torch.eye(n, dtype=f64, device=dev)
+        return (
+            [Ac, eye_n[nu:].expand(B, -1, -1)],  # the constraints, then s >= 0
+            [lc, x0.new_zeros(B, C)],
+            [x0.new_full((B, C), _INF), x0.new_full((B, C), _INF)],
+        )
 
     def trajectory(self, x0: torch.Tensor, z: torch.Tensor, lin: dict) -> dict:
         """States ``(B, N, K, 4)`` and controls ``(B, N, K, 2)`` of the linear model at ``z``."""

@@ -29,11 +29,12 @@ Checkpoints and resume
     any moment, or stopped by a full disk or a read-only folder (one
     :class:`~epo_casadi.errors.OutputError` naming the file), leaves the previous
     checkpoint intact and no partial file. ``checkpoint.pt`` and ``best.pt``
-    carry a sha256 of their content (:data:`CHECKSUM_MAGIC` header line, then the
-    ``torch.save`` bytes); :func:`load_checkpoint` verifies it and refuses a changed or
+    carry a sha256 of their content (the file format: :mod:`learning.checkpoint`);
+    :func:`~learning.checkpoint.load_checkpoint` verifies it and refuses a changed or
     damaged file naming it. A file written before checksums existed (a plain
-    ``torch.save`` zip) still loads, with a :class:`UncheckedCheckpointWarning`; the
-    next checkpoint of a resumed run is written with a checksum.
+    ``torch.save`` zip) still loads, with a
+    :class:`~learning.checkpoint.UncheckedCheckpointWarning`; the next checkpoint of a
+    resumed run is written with a checksum.
     :func:`train` on a directory that holds a checkpoint continues from it: same model,
     optimizer and RNG states, and the batches of an epoch come from the permutation of
     ``(seed, epoch)`` (:meth:`learning.data.SceneDataset.order`), so the resumed run takes
@@ -54,48 +55,49 @@ of one sample with ``modes = 1`` is skipped (only possible for a last, partial b
 from __future__ import annotations
 
 import contextlib
-import csv
-import hashlib
-import io
 import json
 import math
 import os
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from epo_casadi.errors import EpoError, SpecError
 from scenarios.dataset import MANIFEST, DatasetError, check_output_dir
 from scenarios.files import output_lock, write_atomic
 
+from .checkpoint import (
+    CHECKPOINT_FORMAT,
+    RESUMABLE_CHANGES,
+    CheckpointError,
+    check_game,
+    checkpoint_path,
+    comparable_settings,
+    load_checkpoint,
+    save_checkpoint,
+    setting_diff,
+)
 from .data import SceneDataset, game_summary
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
-from .models import EXECUTION_SETTINGS, ModelConfig, build_model, count_parameters
+from .models import ModelConfig, build_model, count_parameters
+from .records import plot_history, tensorboard_writer, write_csv
 from .scoring import METRICS, evaluate_model
 
 __all__ = [
     "PAPER_LOSS_WEIGHTS",
-    "CheckpointError",
     "TrainConfig",
     "TrainResult",
-    "UncheckedCheckpointWarning",
     "check_run_dir",
     "compute_loss",
-    "load_checkpoint",
     "load_model",
     "torch_threads",
     "train",
 ]
 
-CHECKPOINT_FORMAT = 1
-#: first bytes of a checkpoint file; 64 hex digits of the payload's sha256 and b"\n" follow
-CHECKSUM_MAGIC = b"EPO-CHECKPOINT sha256="
-_HEADER = len(CHECKSUM_MAGIC) + 65
-_ZIP_MAGIC = b"PK\x03\x04"  # a plain torch.save file (checkpoints before checksums)
 #: loss weights of the paper by model kind (imitation, goal, probability)
 PAPER_LOSS_WEIGHTS = {
     "epo": LossWeights(1.0, 0.1, 0.1),
@@ -103,20 +105,6 @@ PAPER_LOSS_WEIGHTS = {
     "vlstm": LossWeights(1.0, 0.0, 1.0),
     "tgl": LossWeights(1.0, 0.0, 1.0),  # scene loss, as + SC (learning.tgl)
 }
-#: settings that may change when a run is resumed
-RESUMABLE_CHANGES = ("epochs", "checkpoint_steps", "eval_batch_size")
-
-
-class CheckpointError(EpoError):
-    """A run directory or checkpoint is missing, unreadable or belongs to another setup."""
-
-    def __init__(self, where: str, message: str):
-        self.where, self.message = where, message
-        super().__init__(f"{where}: {message}")
-
-
-class UncheckedCheckpointWarning(UserWarning):
-    """A checkpoint written before checksums existed was loaded without verification."""
 
 
 def _int(name, v, lo):
@@ -209,67 +197,8 @@ class TrainResult:
 
 
 # --------------------------------------------------------------------------------------
-# checkpoints
+# loading a run
 # --------------------------------------------------------------------------------------
-def _atomic_torch_save(obj, path: Path) -> None:
-    """``torch.save`` bytes behind a sha256 header line, written atomically
-    (:func:`scenarios.files.write_atomic`: a full disk leaves the previous file intact)."""
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    payload = buf.getvalue()
-    header = CHECKSUM_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n"
-    write_atomic(path, lambda f: (f.write(header), f.write(payload)))
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    write_atomic(path, text)
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """A checkpoint written by :func:`train`; :class:`CheckpointError` if missing or corrupt."""
-    p = Path(path)
-    if not p.is_file():
-        raise CheckpointError(str(p), "no such checkpoint file")
-    raw = p.read_bytes()
-    if raw.startswith(CHECKSUM_MAGIC):
-        digest, payload = raw[len(CHECKSUM_MAGIC) : _HEADER - 1], raw[_HEADER:]
-        if (
-            raw[_HEADER - 1 : _HEADER] != b"\n"
-            or hashlib.sha256(payload).hexdigest().encode() != digest
-        ):
-            raise CheckpointError(
-                str(p),
-                "sha256 checksum mismatch: the checkpoint is damaged or was changed after it "
-                "was written; restore it from a backup or train into a new directory",
-            )
-    elif raw.startswith(_ZIP_MAGIC):
-        payload = raw
-        warnings.warn(
-            f"{p}: written without a checksum (before checksums were added); loaded "
-            "unverified (checkpoints written from now on carry one)",
-            UncheckedCheckpointWarning,
-            stacklevel=2,
-        )
-    else:
-        raise CheckpointError(
-            str(p), "unreadable checkpoint (no checkpoint header: not written by epo train)"
-        )
-    try:
-        ck = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many kinds for a damaged file
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise CheckpointError(
-            str(p), f"unreadable checkpoint ({type(e).__name__}: {msg[:120]})"
-        ) from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        got = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
-        raise CheckpointError(f"{p}.format", f"expected {CHECKPOINT_FORMAT}, got {got!r}")
-    for key in ("config", "game", "data", "model", "epoch"):
-        if key not in ck:
-            raise CheckpointError(f"{p}.{key}", "missing")
-    return ck
-
-
 def _checkpoint_config(ck: dict, where: str) -> TrainConfig:
     try:
         return TrainConfig.from_dict(ck["config"])
@@ -277,48 +206,15 @@ def _checkpoint_config(ck: dict, where: str) -> TrainConfig:
         raise CheckpointError(f"{where}.config", str(e)) from None
 
 
-def _settings(d: dict) -> dict:
-    """A config dict without the model's execution settings (the layer's backend and
-    compilation: the same steps to rounding), so a run may resume with others."""
-    if isinstance(d.get("model"), dict):
-        d = {**d, "model": {k: v for k, v in d["model"].items() if k not in EXECUTION_SETTINGS}}
-    return d
-
-
-def _run_setting_diff(saved: dict, now: dict) -> str | None:
-    """First training setting (``model.kind``, ``seed``, ...) in which two configs differ."""
-    saved, now = _settings(saved), _settings(now)
-    for k in now:
-        if k in RESUMABLE_CHANGES or saved.get(k) == now[k]:
-            continue
-        if k == "model" and isinstance(saved.get(k), dict):
-            sub = [j for j in now[k] if saved[k].get(j) != now[k][j]]
-            if sub:
-                return f"model.{sub[0]} ({saved[k].get(sub[0])!r}, run: {now[k][sub[0]]!r})"
-        return f"{k} ({saved.get(k)!r}, run: {now[k]!r})"
-    return None
-
-
 def _check_same_run(ck: dict, run_config: dict, path: Path) -> None:
     """Refuse a checkpoint whose settings differ from its run directory's (another run's file)."""
-    diff = _run_setting_diff(_checkpoint_config(ck, str(path)).to_dict(), run_config)
+    diff = setting_diff(_checkpoint_config(ck, str(path)).to_dict(), run_config)
     if diff is not None:
         raise CheckpointError(
             str(path),
             f"belongs to another run: its {diff} differs from the run's config.json; "
             "copy back the run's own file or retrain",
         )
-
-
-def check_game(saved: dict, game, where: str) -> None:
-    """Refuse a model trained on a game that differs from ``game`` (agents, horizon, params)."""
-    now = game_summary(game)
-    for k, v in saved.items():
-        if now.get(k) != v:
-            raise CheckpointError(
-                f"{where}.game.{k}",
-                f"the run was trained on a game with {k} {v!r}, the dataset's game has {now.get(k)!r}",
-            )
 
 
 def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
@@ -328,15 +224,7 @@ def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
     no validation split yet) or ``"last"`` (``checkpoint.pt``).
     """
     d = Path(run_dir)
-    if not d.is_dir():
-        raise CheckpointError(str(d), "no such run directory")
-    if which not in ("best", "last"):
-        raise SpecError("checkpoint", f"expected 'best' or 'last', got {which!r}")
-    path = d / "best.pt" if which == "best" and (d / "best.pt").exists() else d / "checkpoint.pt"
-    if not path.exists():
-        raise CheckpointError(
-            str(path), "missing: not a training run directory (or it never finished an epoch)"
-        )
+    path = checkpoint_path(d, which)
     ck = load_checkpoint(path)
     cfg = _checkpoint_config(ck, str(path))
     info = d / "config.json"
@@ -391,54 +279,6 @@ def _zero_sums() -> dict:
     }
 
 
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    if not rows:
-        return
-    keys = list(rows[0])
-    for r in rows[1:]:
-        keys += [k for k in r if k not in keys]
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=keys)
-    w.writeheader()
-    w.writerows(rows)
-    _atomic_text(path, buf.getvalue())
-
-
-def plot_history(rows: list[dict], out_png: str | os.PathLike, title: str = "") -> None:
-    """Training loss parts and validation minADE/minSADE per epoch (matplotlib, Agg canvas)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(9, 3.6))
-    FigureCanvasAgg(fig)
-    a1, a2 = fig.subplots(1, 2)
-    ep = [r["epoch"] for r in rows]
-    parts = [("train_loss", "-o"), ("train_imitation", "--"), ("train_probability", ":")]
-    if all(r.get("train_goal", 0) > 0 for r in rows):  # a goal decoder's loss
-        parts.append(("train_goal", "-."))
-    for k, style in parts:
-        a1.plot(ep, [r[k] for r in rows], style, label=k.replace("train_", ""))
-    a1.set_yscale("log")
-    a1.set_xlabel("epoch")
-    a1.set_title("training loss")
-    a1.legend(fontsize=8)
-    a1.grid(alpha=0.3)
-    for k in ("val_minADE", "val_minSADE", "val_minFDE", "val_minSFDE"):
-        vals = [r.get(k, math.nan) for r in rows]
-        if any(math.isfinite(v) for v in vals):
-            a2.plot(ep, vals, "-o", ms=3, label=k[4:])
-    a2.set_xlabel("epoch")
-    a2.set_ylabel("m")
-    a2.set_title("validation")
-    if a2.lines:
-        a2.legend(fontsize=8)
-    a2.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    write_atomic(out_png, lambda f: fig.savefig(f, format="png", dpi=100))
-
-
 @contextlib.contextmanager
 def torch_threads(n: int | None):
     """Run a block with ``n`` torch intra-op threads (None: leave as is), then restore.
@@ -458,19 +298,6 @@ def torch_threads(n: int | None):
         yield
     finally:
         torch.set_num_threads(old)
-
-
-def _tensorboard(log_dir: Path, purge_step: int):
-    """A SummaryWriter when tensorboard is installed, else None."""
-    import warnings
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            from torch.utils.tensorboard import SummaryWriter
-    except Exception:  # not installed (ImportError) or broken: TensorBoard is optional
-        return None
-    return SummaryWriter(str(log_dir), purge_step=purge_step)
 
 
 def _diverged_error(epoch: int, step: int, lr: float, ck_path: Path, what: str) -> EpoError:
@@ -547,17 +374,16 @@ def check_run_dir(
     return out
 
 
-def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> TrainResult:
-    t_call = time.perf_counter()
-    cfg = config
-    kind = cfg.model.kind
+def _open_splits(data_dir, cfg: TrainConfig) -> tuple[SceneDataset, SceneDataset | None]:
+    """The train split (refused when empty, or without the goals ours reads) and the
+    validation split (None when ``cfg.val_split`` is None or the split is empty)."""
     train_ds = SceneDataset(data_dir, "train")
     if len(train_ds) == 0:
         raise SpecError("data", f"{data_dir}: the train split has no samples")
     game = train_ds.game
     m = cfg.model
     has_goal_param = any(f"goal.{a}" in game.params for a in game.agent_names)
-    if kind == "epo" and m.goal_decoder == "given" and has_goal_param:
+    if m.kind == "epo" and m.goal_decoder == "given" and has_goal_param:
         if "goals" not in train_ds.fields:
             raise DatasetError(
                 f"{Path(data_dir) / MANIFEST}.schema.goals",
@@ -569,12 +395,13 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
         val_ds = SceneDataset(data_dir, cfg.val_split)
         if len(val_ds) == 0:
             val_ds = None
-    out = Path(out_dir)  # created and locked by train()
-    ck_path, best_path = out / "checkpoint.pt", out / "best.pt"
-    summary = game_summary(game)
-    fingerprint = train_ds.fingerprint
+    return train_ds, val_ds
 
-    state = None
+
+def _resume_checkpoint(out: Path, data_dir, cfg: TrainConfig, fingerprint: dict, game):
+    """The checkpoint ``out`` holds (None: a new run), refused when it belongs to another
+    run (settings, dataset, game), or when an earlier run's files exist without it."""
+    ck_path, best_path = out / "checkpoint.pt", out / "best.pt"
     history_files = [f for f in (best_path, out / "metrics.csv") if f.exists()]
     if not ck_path.exists() and history_files:
         raise CheckpointError(
@@ -583,205 +410,282 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
             "exist and training from scratch would overwrite them; restore checkpoint.pt, "
             "or train into a new directory",
         )
-    if ck_path.exists():
-        state = load_checkpoint(ck_path)
-        old = _settings(_checkpoint_config(state, str(ck_path)).to_dict())
-        new = _settings(cfg.to_dict())
-        for k in new:
-            if k not in RESUMABLE_CHANGES and old.get(k) != new[k]:
-                raise CheckpointError(
-                    str(ck_path),
-                    f"holds a run with a different {k} ({old.get(k)!r}, now {new[k]!r}); "
-                    "use another output directory",
-                )
-        if json.dumps(state["data"], sort_keys=True) != json.dumps(fingerprint, sort_keys=True):
+    if not ck_path.exists():
+        return None
+    state = load_checkpoint(ck_path)
+    old = comparable_settings(_checkpoint_config(state, str(ck_path)).to_dict())
+    new = comparable_settings(cfg.to_dict())
+    for k in new:
+        if k not in RESUMABLE_CHANGES and old.get(k) != new[k]:
             raise CheckpointError(
-                str(ck_path), f"holds a run trained on another dataset than {data_dir}"
+                str(ck_path),
+                f"holds a run with a different {k} ({old.get(k)!r}, now {new[k]!r}); "
+                "use another output directory",
             )
-        check_game(state["game"], game, str(ck_path))
-        if best_path.exists():  # verified now, and refused if it belongs to another run
-            _check_same_run(load_checkpoint(best_path), cfg.to_dict(), best_path)
-
-    torch.manual_seed(cfg.seed)
-    model = build_model(cfg.model, game)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    history: list[dict] = []
-    epoch, step, start_batch = 0, 0, 0
-    sums = _zero_sums()
-    best = math.inf
-    if state is not None:
-        try:
-            model.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            torch.set_rng_state(state["rng"])
-        except (RuntimeError, KeyError, ValueError, TypeError) as e:
-            raise CheckpointError(
-                str(ck_path), f"does not fit the model ({str(e).splitlines()[0][:160]})"
-            ) from None
-        epoch, step, start_batch = (
-            int(state["epoch"]),
-            int(state["step"]),
-            int(state["step_in_epoch"]),
+    if json.dumps(state["data"], sort_keys=True) != json.dumps(fingerprint, sort_keys=True):
+        raise CheckpointError(
+            str(ck_path), f"holds a run trained on another dataset than {data_dir}"
         )
-        sums = dict(state["sums"])
-        history = list(state["history"])
-        best = float(state["best"])
-    resumed_from = step if state is not None else None
+    check_game(state["game"], game, str(ck_path))
+    if best_path.exists():  # verified now, and refused if it belongs to another run
+        _check_same_run(load_checkpoint(best_path), cfg.to_dict(), best_path)
+    return state
 
-    info = {
-        "train": cfg.to_dict(),
-        "data": {
-            "directory": str(Path(data_dir).resolve()),
-            **fingerprint,
-            "counts": train_ds.manifest.get("counts"),
-            # shapes and meta (frame) of the samples: what a closed-loop planner rebuilds
-            "schema": {k: v["shape"] for k, v in train_ds.manifest["schema"].items()},
-            "meta": train_ds.manifest.get("meta", {}),
-        },
-        "game": summary,
-        "parameters": count_parameters(model),
-        "torch": torch.__version__,
-    }
-    _atomic_text(out / "config.json", json.dumps(info, indent=1) + "\n")
 
-    def snapshot(ep: int, st: int, in_epoch: int) -> dict:
+@dataclass
+class _Progress:
+    """Where a run stands: what a checkpoint stores besides the weights and RNG."""
+
+    epoch: int = 0  #: epochs completed
+    step: int = 0  #: optimizer steps completed
+    start_batch: int = 0  #: batches of the current epoch already done
+    sums: dict = field(default_factory=_zero_sums)  #: the current epoch's sums so far
+    history: list[dict] = field(default_factory=list)  #: metrics.csv rows
+    best: float = math.inf  #: lowest validation minSADE so far
+    step_losses: list[tuple[int, float]] = field(default_factory=list)  #: of this call
+
+
+@dataclass
+class _Run:
+    """What the steps of one training call share: settings, data, model, files."""
+
+    cfg: TrainConfig
+    out: Path
+    train_ds: SceneDataset
+    val_ds: SceneDataset | None
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    summary: dict  #: the game summary (checkpoint ``game``)
+    fingerprint: dict  #: the dataset identity (checkpoint ``data``)
+
+    @property
+    def ck_path(self) -> Path:
+        return self.out / "checkpoint.pt"
+
+    @property
+    def best_path(self) -> Path:
+        return self.out / "best.pt"
+
+    def snapshot(self, pr: _Progress, epoch: int, step: int, in_epoch: int) -> dict:
+        """The checkpoint of the run now (format :data:`~learning.checkpoint.CHECKPOINT_FORMAT`)."""
         return {
             "format": CHECKPOINT_FORMAT,
-            "config": cfg.to_dict(),
-            "game": summary,
-            "data": fingerprint,
-            "model": model.state_dict(),
-            "optimizer": opt.state_dict(),
+            "config": self.cfg.to_dict(),
+            "game": self.summary,
+            "data": self.fingerprint,
+            "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(),
             "rng": torch.get_rng_state(),
-            "epoch": ep,
-            "step": st,
+            "epoch": epoch,
+            "step": step,
             "step_in_epoch": in_epoch,
-            "sums": dict(sums),
-            "history": history,
-            "best": best,
+            "sums": dict(pr.sums),
+            "history": pr.history,
+            "best": pr.best,
         }
 
-    writer = _tensorboard(out / "tb", step) if epoch < cfg.epochs else None
-    weights = cfg.loss_weights
-    step_losses: list[tuple[int, float]] = []
-    nb = train_ds.num_batches(cfg.batch_size)
+
+def _restore(run: _Run, state: dict) -> _Progress:
+    """Model, optimizer and torch RNG states and the progress of a checkpoint."""
+    try:
+        run.model.load_state_dict(state["model"])
+        run.opt.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["rng"])
+    except (RuntimeError, KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(
+            str(run.ck_path), f"does not fit the model ({str(e).splitlines()[0][:160]})"
+        ) from None
+    return _Progress(
+        epoch=int(state["epoch"]),
+        step=int(state["step"]),
+        start_batch=int(state["step_in_epoch"]),
+        sums=dict(state["sums"]),
+        history=list(state["history"]),
+        best=float(state["best"]),
+    )
+
+
+def _write_run_info(run: _Run, data_dir) -> None:
+    """``config.json``: settings, dataset identity, counts, schema and meta, game, sizes."""
+    ds = run.train_ds
+    info = {
+        "train": run.cfg.to_dict(),
+        "data": {
+            "directory": str(Path(data_dir).resolve()),
+            **run.fingerprint,
+            "counts": ds.manifest.get("counts"),
+            # shapes and meta (frame) of the samples: what a closed-loop planner rebuilds
+            "schema": {k: v["shape"] for k, v in ds.manifest["schema"].items()},
+            "meta": ds.manifest.get("meta", {}),
+        },
+        "game": run.summary,
+        "parameters": count_parameters(run.model),
+        "torch": torch.__version__,
+    }
+    write_atomic(run.out / "config.json", json.dumps(info, indent=1) + "\n")
+
+
+def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float) -> dict | None:
+    """One optimizer step on ``batch``; its loss parts as floats (None: batch skipped)."""
+    cfg, model = run.cfg, run.model
+    n = int(batch["history"].shape[0])
+    if n * cfg.model.modes < 2:  # BatchNorm needs two values per channel
+        return None
+    with _diverged(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the model's output"):
+        res = model(batch)
+    parts = compute_loss(cfg.model.kind, res, batch["gt"], cfg.loss_weights)
+    loss = parts["loss"]
+    if not torch.isfinite(loss):
+        raise _diverged_error(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the loss")
+    run.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    run.opt.step()
+    pr.step += 1
+    if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
+        raise _diverged_error(pr.epoch, pr.step, cfg.lr, run.ck_path, "the weights")
+    vals = {k: v.item() for k, v in parts.items()}
+    for k in ("loss", "imitation", "probability", "goal"):
+        pr.sums[k] = pr.sums.get(k, 0.0) + vals[k] * n
+    pr.sums["samples"] += n
+    pr.sums["seconds"] = time.perf_counter() - t0
+    pr.step_losses.append((pr.step, vals["loss"]))
+    return vals
+
+
+def _train_epoch(run: _Run, pr: _Progress, writer, progress: bool, on_step) -> float:
+    """The batches of epoch ``pr.epoch`` from ``pr.start_batch`` on (order: the permutation
+    of ``(seed, epoch)``); returns the epoch's start time (less the seconds spent in it
+    before a resume)."""
+    cfg = run.cfg
+    nb = run.train_ds.num_batches(cfg.batch_size)
     bar = None
     try:
-        while epoch < cfg.epochs:
-            if progress:
-                from tqdm import tqdm
+        if progress:
+            from tqdm import tqdm
 
-                bar = tqdm(
-                    total=nb,
-                    initial=start_batch,
-                    desc=f"{kind} epoch {epoch + 1}/{cfg.epochs}",
-                    unit="batch",
-                    dynamic_ncols=True,
-                    leave=False,
-                )
-            model.train()
-            t0 = time.perf_counter() - sums["seconds"]
-            for b, batch in enumerate(
-                train_ds.batches(
-                    cfg.batch_size, shuffle=True, seed=cfg.seed, epoch=epoch, start=start_batch
-                ),
-                start=start_batch,
-            ):
-                n = int(batch["history"].shape[0])
-                if n * cfg.model.modes < 2:  # BatchNorm needs two values per channel
-                    continue
-                with _diverged(epoch, step + 1, cfg.lr, ck_path, "the model's output"):
-                    res = model(batch)
-                parts = compute_loss(kind, res, batch["gt"], weights)
-                loss = parts["loss"]
-                if not torch.isfinite(loss):
-                    raise _diverged_error(epoch, step + 1, cfg.lr, ck_path, "the loss")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                step += 1
-                if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
-                    raise _diverged_error(epoch, step, cfg.lr, ck_path, "the weights")
-                vals = {k: v.item() for k, v in parts.items()}
-                for k in ("loss", "imitation", "probability", "goal"):
-                    sums[k] = sums.get(k, 0.0) + vals[k] * n
-                sums["samples"] += n
-                sums["seconds"] = time.perf_counter() - t0
-                step_losses.append((step, vals["loss"]))
-                if writer is not None:
-                    for k, v in vals.items():
-                        writer.add_scalar(f"train/{k}", v, step)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(
-                        loss=f"{vals['loss']:.4g}",
-                        rate=f"{sums['samples'] / max(sums['seconds'], 1e-9):.1f} samples/s",
-                    )
-                if cfg.checkpoint_steps and step % cfg.checkpoint_steps == 0 and b + 1 < nb:
-                    _atomic_torch_save(snapshot(epoch, step, b + 1), ck_path)
-                if on_step is not None:
-                    on_step(step, vals)
-            if bar is not None:
-                bar.close()
-                bar = None
-            # ---- end of epoch: validate, record, checkpoint
-            seconds = time.perf_counter() - t0
-            ns = max(sums["samples"], 1)
-            row = {
-                "epoch": epoch + 1,
-                "step": step,
-                "seconds": round(seconds, 3),
-                "samples_per_s": round(sums["samples"] / max(seconds, 1e-9), 3),
-                "train_loss": sums["loss"] / ns,
-                "train_imitation": sums["imitation"] / ns,
-                "train_probability": sums["probability"] / ns,
-                "train_goal": sums.get("goal", 0.0) / ns,
-            }
-            if val_ds is not None:
-                t1 = time.perf_counter()
-                with _diverged(epoch, step, cfg.lr, ck_path, "the validation output"):
-                    vm = evaluate_model(model, val_ds, batch_size=cfg.eval_batch_size)
-                row.update({f"val_{k}": vm[k] for k in METRICS})
-                row["val_seconds"] = round(time.perf_counter() - t1, 3)
-            else:
-                row.update({f"val_{k}": math.nan for k in METRICS})
-            history.append(row)
-            epoch += 1
-            start_batch = 0
-            sums = _zero_sums()
-            score = row["val_minSADE"]
-            improved = val_ds is None or score < best
-            if improved and val_ds is not None:
-                best = score
-            snap = snapshot(epoch, step, 0)
-            if improved:
-                _atomic_torch_save(
-                    {
-                        k: snap[k]
-                        for k in ("format", "config", "game", "data", "model", "epoch", "step")
-                    }
-                    | {"metrics": row},
-                    best_path,
-                )
-            _write_csv(out / "metrics.csv", history)
-            plot_history(history, out / "loss.png", title=f"{kind}: {out.name}")
-            # the checkpoint last: it commits the epoch, so a failed write of any file
-            # (a full disk) leaves the previous epoch's checkpoint, and a rerun redoes the
-            # epoch and writes every file again
-            _atomic_torch_save(snap, ck_path)
+            bar = tqdm(
+                total=nb,
+                initial=pr.start_batch,
+                desc=f"{cfg.model.kind} epoch {pr.epoch + 1}/{cfg.epochs}",
+                unit="batch",
+                dynamic_ncols=True,
+                leave=False,
+            )
+        run.model.train()
+        t0 = time.perf_counter() - pr.sums["seconds"]
+        batches = run.train_ds.batches(
+            cfg.batch_size, shuffle=True, seed=cfg.seed, epoch=pr.epoch, start=pr.start_batch
+        )
+        for b, batch in enumerate(batches, start=pr.start_batch):
+            vals = _train_step(run, pr, batch, t0)
+            if vals is None:
+                continue
             if writer is not None:
-                for k, v in row.items():
-                    if k.startswith(("val_", "train_")) and math.isfinite(v):
-                        writer.add_scalar(f"epoch/{k}", v, step)
-                writer.flush()
+                for k, v in vals.items():
+                    writer.add_scalar(f"train/{k}", v, pr.step)
+            if bar is not None:
+                bar.update(1)
+                rate = pr.sums["samples"] / max(pr.sums["seconds"], 1e-9)
+                bar.set_postfix(loss=f"{vals['loss']:.4g}", rate=f"{rate:.1f} samples/s")
+            if cfg.checkpoint_steps and pr.step % cfg.checkpoint_steps == 0 and b + 1 < nb:
+                save_checkpoint(run.snapshot(pr, pr.epoch, pr.step, b + 1), run.ck_path)
+            if on_step is not None:
+                on_step(pr.step, vals)
     finally:
         if bar is not None:
             bar.close()
+    return t0
+
+
+def _epoch_row(run: _Run, pr: _Progress, t0: float) -> dict:
+    """The metrics.csv row of the epoch just trained: training sums, then validation."""
+    seconds = time.perf_counter() - t0
+    sums = pr.sums
+    ns = max(sums["samples"], 1)
+    row = {
+        "epoch": pr.epoch + 1,
+        "step": pr.step,
+        "seconds": round(seconds, 3),
+        "samples_per_s": round(sums["samples"] / max(seconds, 1e-9), 3),
+        "train_loss": sums["loss"] / ns,
+        "train_imitation": sums["imitation"] / ns,
+        "train_probability": sums["probability"] / ns,
+        "train_goal": sums.get("goal", 0.0) / ns,
+    }
+    if run.val_ds is not None:
+        t1 = time.perf_counter()
+        with _diverged(pr.epoch, pr.step, run.cfg.lr, run.ck_path, "the validation output"):
+            vm = evaluate_model(run.model, run.val_ds, batch_size=run.cfg.eval_batch_size)
+        row.update({f"val_{k}": vm[k] for k in METRICS})
+        row["val_seconds"] = round(time.perf_counter() - t1, 3)
+    else:
+        row.update({f"val_{k}": math.nan for k in METRICS})
+    return row
+
+
+def _commit_epoch(run: _Run, pr: _Progress, row: dict, writer) -> None:
+    """Record the epoch: ``best.pt`` if it improved, metrics.csv, loss.png, then the
+    checkpoint (last: it commits the epoch), then TensorBoard."""
+    pr.history.append(row)
+    pr.epoch += 1
+    pr.start_batch = 0
+    pr.sums = _zero_sums()
+    score = row["val_minSADE"]
+    improved = run.val_ds is None or score < pr.best
+    if improved and run.val_ds is not None:
+        pr.best = score
+    snap = run.snapshot(pr, pr.epoch, pr.step, 0)
+    if improved:
+        keep = ("format", "config", "game", "data", "model", "epoch", "step")
+        save_checkpoint({k: snap[k] for k in keep} | {"metrics": row}, run.best_path)
+    write_csv(run.out / "metrics.csv", pr.history)
+    plot_history(pr.history, run.out / "loss.png", title=f"{run.cfg.model.kind}: {run.out.name}")
+    # the checkpoint last: it commits the epoch, so a failed write of any file (a full
+    # disk) leaves the previous epoch's checkpoint, and a rerun redoes the epoch and
+    # writes every file again
+    save_checkpoint(snap, run.ck_path)
+    if writer is not None:
+        for k, v in row.items():
+            if k.startswith(("val_", "train_")) and math.isfinite(v):
+                writer.add_scalar(f"epoch/{k}", v, pr.step)
+        writer.flush()
+
+
+def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> TrainResult:
+    """The steps of :func:`train` in a created, locked ``out_dir``: open the splits, check a
+    checkpoint to resume, seed and build the model and optimizer, restore, write
+    ``config.json``, then per epoch train, validate and commit."""
+    t_call = time.perf_counter()
+    cfg = config
+    train_ds, val_ds = _open_splits(data_dir, cfg)
+    game = train_ds.game
+    out = Path(out_dir)  # created and locked by train()
+    summary, fingerprint = game_summary(game), train_ds.fingerprint
+    state = _resume_checkpoint(out, data_dir, cfg, fingerprint, game)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.model, game)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    run = _Run(cfg, out, train_ds, val_ds, model, opt, summary, fingerprint)
+    pr = _Progress() if state is None else _restore(run, state)
+    resumed_from = pr.step if state is not None else None
+    _write_run_info(run, data_dir)
+    writer = tensorboard_writer(out / "tb", pr.step) if pr.epoch < cfg.epochs else None
+    try:
+        while pr.epoch < cfg.epochs:
+            t0 = _train_epoch(run, pr, writer, progress, on_step)
+            _commit_epoch(run, pr, _epoch_row(run, pr, t0), writer)
+    finally:
         if writer is not None:
             writer.close()
         train_ds.close()
         if val_ds is not None:
             val_ds.close()
     return TrainResult(
-        str(out), epoch, step, history, time.perf_counter() - t_call, resumed_from, step_losses
+        str(out),
+        pr.epoch,
+        pr.step,
+        pr.history,
+        time.perf_counter() - t_call,
+        resumed_from,
+        pr.step_losses,
     )

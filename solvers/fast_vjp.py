@@ -6,7 +6,7 @@ gradient w.r.t. ``(u, p)`` of::
 
     phi(u, p) = a' J(u, p) z + b' (J(u, p) du + r(u, p)),   a = J du + r,  b = J z  (held fixed)
 
-``learning.layer.layer_functions(game, "lm_step_vjp")`` builds it as one CasADi graph over
+``learning.layer_core.layer_functions(game, "lm_step_vjp")`` builds it as one CasADi graph over
 the whole trajectory (the reference). Its size grows with the horizon times the residual
 graph (the left-turn game, K = 60 with path terms: 666k instructions, too large to
 compile), so :func:`staged_step_vjp` builds the same function from small stage functions:

@@ -28,7 +28,7 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from learning.layer import layer_functions
+from learning.layer_core import layer_functions
 from solvers.batch import BatchFunction
 from solvers.fast_vjp import staged_step_vjp, staged_vjp_info
 from solvers.structured import stage_layout

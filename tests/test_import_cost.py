@@ -10,7 +10,14 @@ import subprocess
 import sys
 
 #: never imported by ``import learning`` nor by the layer and model modules
-HEAVY = ("filterpy", "scipy.stats", "learning.tgl", "learning.control", "scenarios.closed_loop")
+HEAVY = (
+    "filterpy",
+    "scipy.stats",
+    "learning.tgl",
+    "learning.control",
+    "learning.planner",
+    "scenarios.closed_loop",
+)
 
 
 def _modules(code: str, names) -> dict[str, bool]:

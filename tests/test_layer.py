@@ -29,9 +29,9 @@ from learning.layer import (
     GameLayer,
     GameLayerFunction,
     decode_status,
-    layer_functions,
     status_code,
 )
+from learning.layer_core import layer_functions
 from solvers.lm import DenseGN, LMOptions, solve_lm
 from solvers.result import Status
 
@@ -633,7 +633,7 @@ def test_compiled_layer_leaves_large_functions_interpreted(game8, monkeypatch):
     interpreted (named in ``layer.interpreted``); outputs and gradients equal the fully
     interpreted layer's bit for bit, and those of the fully compiled one to rounding."""
     pytest.importorskip("solvers.codegen").find_compiler()
-    import learning.layer as L
+    import learning.layer_core as L
 
     rng = np.random.default_rng(3)
     p0 = torch.as_tensor(game8.params.defaults())
@@ -723,7 +723,7 @@ def test_compiled_layer_uses_the_staged_vjp_for_large_graphs(game8, tmp_path, mo
     STAGED_VJP_MIN_INSTRUCTIONS; the compiled staged layer equals the interpreted
     monolithic one to rounding."""
     pytest.importorskip("solvers.codegen").find_compiler()
-    import learning.layer as L
+    import learning.layer_core as L
 
     opts = LMOptions.paper(steps=2, backend="fused", compiled=True)
     assert GameLayer(game8, opts, compiled=True, cache_dir=tmp_path).vjp == "monolithic"

@@ -1,4 +1,4 @@
-"""The network as a closed-loop planner (learning.control.NetworkPlanner, load_planner).
+"""The network as a closed-loop planner (learning.planner.NetworkPlanner, load_planner).
 
 References: the scenes the dataset code builds for the same trajectory (the synthetic
 dataset's files, :meth:`scenarios.rpi.RPIScenario.pre_history` and the windowing of
@@ -17,16 +17,13 @@ import pytest
 import torch
 
 from epo_casadi.errors import SpecError
-from learning.control import (
-    NetworkPlanner,
-    PlannerOptions,
-    load_planner,
-    observation_scene,
-    plan,
-)
+from learning.checkpoint import CheckpointError
+from learning.control import plan
 from learning.data import SceneDataset
 from learning.models import ModelConfig
-from learning.train import CheckpointError, TrainConfig, train
+from learning.observation import observation_scene
+from learning.planner import NetworkPlanner, PlannerOptions, load_planner
+from learning.train import TrainConfig, train
 from scenarios.rpi import RPIRecipe, RPIScenario
 from solvers.control.types import AgentTask, Estimate, Observation, Planner
 from tests.test_models import RECIPE, TINY, synthetic_dataset
@@ -170,7 +167,7 @@ def test_agent_frame_is_the_rigid_transform():
 
 
 def _spec(**kw):
-    from learning.control import SceneSpec
+    from learning.observation import SceneSpec
 
     base = dict(scenario="rpi", kind="epo", n_agents=2, history_steps=H + 1, horizon=10, dt=DT,
                 reads_goals=True)  # fmt: skip
@@ -356,7 +353,7 @@ def test_left_turn_scenes_equal_the_dataset_samples():
     so every plan failed). Reference: the generator's samples of one episode
     (:meth:`scenarios.left_turn.LeftTurnScenario.cut`), the world replayed from its stored
     seed and the planner fed the true states step by step."""
-    from learning.control import SceneSpec
+    from learning.observation import SceneSpec
     from scenarios import dataset as ds
     from scenarios.left_turn import LeftTurnRecipe, LeftTurnScenario, SDVPolicy, simulate
     from scenarios.sim import SCENARIO_FRAMES

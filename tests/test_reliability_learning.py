@@ -27,11 +27,12 @@ import pytest
 import torch
 
 from epo_casadi.errors import OutputError, SpecError
+from learning.checkpoint import load_checkpoint
 from learning.commands import _model_config, _parse_set
 from learning.evaluate import evaluate
 from learning.layer import GameLayer
 from learning.models import SIZE_LIMITS, ModelConfig
-from learning.train import TrainConfig, load_checkpoint, train
+from learning.train import TrainConfig, train
 from scenarios import dataset as ds
 from scenarios.dataset import DatasetError
 from scenarios.files import BusyError, output_lock

@@ -117,7 +117,7 @@ def test_workers_refuse_a_checkpoint_that_changed_during_the_run(sc_run):
 def test_network_planner_never_raises_on_a_missing_observation(sc_run):
     """Class closed: the planners' documented promise (never raise) broken by a missing
     observation or estimate."""
-    from learning.control import load_planner
+    from learning.planner import load_planner
 
     world = make_world("crossing")
     planner = load_planner(sc_run.dir, world)

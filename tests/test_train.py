@@ -10,15 +10,14 @@ import pytest
 import torch
 
 from epo_casadi.errors import SpecError
+from learning.checkpoint import CheckpointError, load_checkpoint
 from learning.data import SceneDataset
 from learning.losses import LossWeights
 from learning.models import ModelConfig, build_model
 from learning.train import (
     PAPER_LOSS_WEIGHTS,
-    CheckpointError,
     TrainConfig,
     compute_loss,
-    load_checkpoint,
     load_model,
     torch_threads,
     train,

@@ -34,7 +34,7 @@ class SimConfig:
     (:data:`~scenarios.closed_loop.roles.PLANNERS`: ``"oracle"`` / ``"cv"``,
     :mod:`solvers.control.plan`, options :class:`~solvers.control.plan.PlannerOptions`;
     ``"model"`` / ``"sc"``, a trained run in ``model`` loaded by
-    ``learning.control.load_planner``; :data:`~scenarios.closed_loop.roles.TRACKERS`:
+    ``learning.planner.load_planner``; :data:`~scenarios.closed_loop.roles.TRACKERS`:
     ``"pid"`` / ``"mpc"``, :mod:`solvers.control.track`;
     :data:`~scenarios.closed_loop.roles.ESTIMATORS`: ``"ukf"``); ``world_options`` go to
     ``scenarios.sim.make_world(scenario, **world_options)``. ``model_checkpoint``: what

@@ -7,7 +7,7 @@ fresh object from a :class:`~scenarios.closed_loop.config.SimConfig` (its
 imported the first time the name is built, so this package imports neither the trained
 planners' torch stack nor anything else it does not run. The built-ins::
 
-    planners    model, sc (learning.control: a trained run in ``config.model``),
+    planners    model, sc (learning.planner: a trained run in ``config.model``),
                 oracle, cv (solvers.control.plan)
     trackers    pid, mpc (solvers.control.track)
     estimators  ukf (solvers.control.estimate)
@@ -130,14 +130,14 @@ def _ukf(config):
     return UKFEstimator(**config.estimator_options)
 
 
-#: planners: ``model`` (ours) and ``sc`` are trained runs, built by :mod:`learning.control`
+#: planners: ``model`` (ours) and ``sc`` are trained runs, built by :mod:`learning.planner`
 PLANNERS = Roles(
     "planner",
     [
-        ("model", Role("learning.control:model_planner", needs_model=True)),
+        ("model", Role("learning.planner:model_planner", needs_model=True)),
         ("oracle", Role(_oracle)),
         ("cv", Role(_constant_velocity)),
-        ("sc", Role("learning.control:sc_planner", needs_model=True)),
+        ("sc", Role("learning.planner:sc_planner", needs_model=True)),
     ],
 )
 #: trackers of the ego's plan

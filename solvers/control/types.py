@@ -16,7 +16,7 @@ heading in rad), whatever vehicle model the world simulates. Commands are in the
 world's vehicle model (:class:`VehicleModel`): ``(a, omega)`` for a unicycle,
 ``(a, delta)`` (steering angle) for a bicycle.
 
-No torch here (the network planner lives in :mod:`learning.control` and implements
+No torch here (the network planner lives in :mod:`learning.planner` and implements
 :class:`Planner`).
 """
 
