@@ -456,51 +456,72 @@ def size_vehicle(v, length: float, width: float) -> None:
 def record(loc: Location, opts: HighwayOptions, seed: np.random.SeedSequence, rid: int):
     """Simulate one recording: ``(tracks, tracks_meta, recording_meta)`` DataFrames in the
     exiD layout, and the number of crashes removed."""
+    rec = _Recording(loc, opts, seed)
+    rows, crashes = rec.run()
+    return _frames(rows, rec.info, loc, opts, rid), crashes
 
-    from .sim._highway import hw
 
-    H = hw()
-    Driver = driver_class()
-    rng = np.random.default_rng(seed)
-    net, ids, (x_b, x_c) = build_network(loc)
-    road = H.Road(network=net, np_random=np.random.RandomState(int(rng.integers(2**31))))
-    road.vehicles = []
-    dt = 1.0 / opts.frame_rate
-    nl = loc.lanes
-    aux = ("b", "c", nl)
-    # merging vehicles brake for the end of the acceleration lane (a deceleration lane
-    # continues into the exit: no end there)
-    aux_end = None
-    if loc.ramp == "on":
-        aux_end = H.Obstacle(road, net.get_lane(aux).position(loc.aux_length, 0.0))
-    entries = [("a", "b", i) for i in range(nl)] + ([("j", "k", 0)] if loc.ramp == "on" else [])
-    rates = [rng.uniform(*opts.flow) for _ in range(nl)]
-    if loc.ramp == "on":
-        rates.append(rng.uniform(*opts.ramp_flow))
-    last_exit = ("e", "f") if loc.ramp == "off" else None
-    info: dict = {}  # vehicle -> dict(id, class, exit, prep, merge_at)
-    next_id = [1]
+class _Recording:
+    """One simulated recording of ``loc``: the road, the entries and their flows, and the
+    vehicles' own data (``info``: vehicle -> dict(id, cls, exit, prep, merge_at)); every
+    random draw comes from one generator seeded by ``seed``, in simulation order."""
 
-    def want(v):
-        d = info[v]
+    def __init__(self, loc: Location, opts: HighwayOptions, seed: np.random.SeedSequence):
+        from .sim._highway import hw
+
+        H = hw()
+        self.Driver = driver_class()
+        self.loc, self.opts = loc, opts
+        self.rng = rng = np.random.default_rng(seed)
+        net, self.ids, (self.x_b, self.x_c) = build_network(loc)
+        self.net = net
+        self.road = H.Road(network=net, np_random=np.random.RandomState(int(rng.integers(2**31))))
+        self.road.vehicles = []
+        self.dt = 1.0 / opts.frame_rate
+        self.nl = nl = loc.lanes
+        self.aux = ("b", "c", nl)
+        # merging vehicles brake for the end of the acceleration lane (a deceleration lane
+        # continues into the exit: no end there)
+        self.aux_end = None
+        if loc.ramp == "on":
+            self.aux_end = H.Obstacle(
+                self.road, net.get_lane(self.aux).position(loc.aux_length, 0.0)
+            )
+        self.entries = [("a", "b", i) for i in range(nl)] + (
+            [("j", "k", 0)] if loc.ramp == "on" else []
+        )
+        self.rates = [rng.uniform(*opts.flow) for _ in range(nl)]
+        if loc.ramp == "on":
+            self.rates.append(rng.uniform(*opts.ramp_flow))
+        self.last_exit = ("e", "f") if loc.ramp == "off" else None
+        self.info: dict = {}
+        self.next_id = 1
+
+    def want(self, v):
+        """The lane vehicle ``v`` heads for (``None``: its own), and its urgency."""
+        loc, nl, d = self.loc, self.nl, self.info[v]
         e, x = v.lane_index, v.position[0]
         if d["exit"]:
-            if e[:2] == ("b", "c") and e[2] < nl and x > x_c - 40.0:  # missed the exit
+            if e[:2] == ("b", "c") and e[2] < nl and x > self.x_c - 40.0:  # missed the exit
                 d["exit"], v.route = False, [("c", "d", None)]
                 return None
-            v.urgency = float(np.clip((x - x_b + d["prep"]) / (d["prep"] + loc.aux_length), 0, 1))
-            if e[:2] == ("a", "b") and x > x_b - d["prep"]:
+            v.urgency = float(
+                np.clip((x - self.x_b + d["prep"]) / (d["prep"] + loc.aux_length), 0, 1)
+            )
+            if e[:2] == ("a", "b") and x > self.x_b - d["prep"]:
                 return nl - 1
             if e[:2] == ("b", "c"):
                 return nl
             return None
-        if e == aux and x > d["merge_at"]:
-            v.urgency = float(np.clip((x - x_b) / loc.aux_length, 0.0, 1.0))
+        if e == self.aux and x > d["merge_at"]:
+            v.urgency = float(np.clip((x - self.x_b) / loc.aux_length, 0.0, 1.0))
             return nl - 1
         return None
 
-    def spawn(lane_index):
-        lane = net.get_lane(lane_index)
+    def spawn(self, lane_index) -> None:
+        """A new vehicle at the start of ``lane_index``, if the entry is free."""
+        loc, opts, rng, road, nl = self.loc, self.opts, self.rng, self.road, self.nl
+        lane = self.net.get_lane(lane_index)
         truck = lane_index[2] >= nl - 2 and rng.random() < opts.truck_share
         if truck:
             length, width, v0 = rng.uniform(10.0, 16.5), 2.5, rng.uniform(22.0, 25.0)
@@ -519,18 +540,8 @@ def record(loc: Location, opts: HighwayOptions, seed: np.random.SeedSequence, ri
         if ahead:
             front = min(ahead, key=lambda u: lane.local_coordinates(u.position)[0])
             speed = min(speed, front.speed)
-        if loc.ramp == "on" and lane_index[0] == "j":
-            route = [("j", "k", 0), ("k", "b", 0), ("b", "c", nl), ("c", "d", None)]
-            exits = False
-        else:
-            exits = loc.ramp == "off" and rng.random() < opts.exit_share
-            tail = (
-                [("b", "c", None), ("c", "e", 0), ("e", "f", 0)]
-                if exits
-                else [("b", "c", None), ("c", "d", None)]
-            )
-            route = [lane_index, *tail]
-        v = Driver(
+        route, exits = self._route(lane_index)
+        v = self.Driver(
             road, lane.position(0.0, 0.0), heading=lane.heading_at(0.0), speed=speed,
             target_lane_index=lane_index, target_speed=v0, route=route,
             timer=float(rng.uniform(0.0, 1.0)),
@@ -541,45 +552,62 @@ def record(loc: Location, opts: HighwayOptions, seed: np.random.SeedSequence, ri
         v.DISTANCE_WANTED = float(rng.uniform(2.0, 4.0))  # bumper to bumper (acceleration)
         v.POLITENESS = float(rng.uniform(0.0, 0.5))
         v.LANE_CHANGE_MIN_ACC_GAIN = float(rng.uniform(0.1, 0.4))
-        v.want, v.aux, v.aux_end = want, aux, aux_end
-        info[v] = dict(
-            id=next_id[0], cls="truck" if truck else "car", exit=exits,
+        v.want, v.aux, v.aux_end = self.want, self.aux, self.aux_end
+        self.info[v] = dict(
+            id=self.next_id, cls="truck" if truck else "car", exit=exits,
             prep=float(rng.uniform(150.0, 280.0)),
-            merge_at=x_b + float(rng.uniform(0.05, 0.4)) * loc.aux_length,
+            merge_at=self.x_b + float(rng.uniform(0.05, 0.4)) * loc.aux_length,
         )  # fmt: skip
-        next_id[0] += 1
+        self.next_id += 1
         road.vehicles.append(v)
 
-    def done(v) -> bool:
-        lane = net.get_lane(v.lane_index)
+    def _route(self, lane_index) -> tuple[list, bool]:
+        """The route of a vehicle entering at ``lane_index`` and whether it exits."""
+        loc = self.loc
+        if loc.ramp == "on" and lane_index[0] == "j":
+            return [("j", "k", 0), ("k", "b", 0), ("b", "c", self.nl), ("c", "d", None)], False
+        exits = loc.ramp == "off" and self.rng.random() < self.opts.exit_share
+        tail = (
+            [("b", "c", None), ("c", "e", 0), ("e", "f", 0)]
+            if exits
+            else [("b", "c", None), ("c", "d", None)]
+        )
+        return [lane_index, *tail], exits
+
+    def done(self, v) -> bool:
+        """Vehicle ``v`` has left the road (the end of the main road or the exit) or crashed."""
+        lane = self.net.get_lane(v.lane_index)
         s = lane.local_coordinates(v.position)[0]
-        end = v.lane_index[:2] in (("c", "d"), last_exit)
+        end = v.lane_index[:2] in (("c", "d"), self.last_exit)
         return (end and s > lane.length - 2.0) or v.crashed
 
-    n_warm = int(round(opts.warmup * opts.frame_rate))
-    n_rec = int(round(opts.duration * opts.frame_rate))
-    rows = []
-    crashes = 0
-    for k in range(-n_warm, n_rec):
-        for lane_index, q in zip(entries, rates, strict=True):
-            if rng.random() < q * dt:
-                spawn(lane_index)
-        road.act()
-        road.step(dt)
-        gone = [v for v in road.vehicles if done(v)]
-        crashes += sum(v.crashed for v in gone)
-        for v in gone:
-            road.vehicles.remove(v)
-        if k < 0:
-            continue
-        for v in road.vehicles:
-            lane = v.lane
-            s, lat = lane.local_coordinates(v.position)
-            rows.append(
-                (info[v]["id"], k, v.position[0], v.position[1], v.heading, ids[v.lane_index],
-                 lat, lane.width_at(s), s, lane.length)
-            )  # fmt: skip
-    return _frames(rows, info, loc, opts, rid), crashes
+    def run(self) -> tuple[list, int]:
+        """Warm up, then record every frame: the rows of the tracks and the crashes removed."""
+        opts, road, dt, rng = self.opts, self.road, self.dt, self.rng
+        n_warm = int(round(opts.warmup * opts.frame_rate))
+        n_rec = int(round(opts.duration * opts.frame_rate))
+        rows = []
+        crashes = 0
+        for k in range(-n_warm, n_rec):
+            for lane_index, q in zip(self.entries, self.rates, strict=True):
+                if rng.random() < q * dt:
+                    self.spawn(lane_index)
+            road.act()
+            road.step(dt)
+            gone = [v for v in road.vehicles if self.done(v)]
+            crashes += sum(v.crashed for v in gone)
+            for v in gone:
+                road.vehicles.remove(v)
+            if k < 0:
+                continue
+            for v in road.vehicles:
+                lane = v.lane
+                s, lat = lane.local_coordinates(v.position)
+                rows.append(
+                    (self.info[v]["id"], k, v.position[0], v.position[1], v.heading,
+                     self.ids[v.lane_index], lat, lane.width_at(s), s, lane.length)
+                )  # fmt: skip
+        return rows, crashes
 
 
 def _frames(rows, info, loc: Location, opts: HighwayOptions, rid: int):
@@ -718,7 +746,7 @@ def _pool(workers: int):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .dataset import _single_threaded_children, _worker_init
+    from .dataset.engine import _single_threaded_children, _worker_init
 
     with _single_threaded_children():
         return ProcessPoolExecutor(

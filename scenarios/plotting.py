@@ -129,8 +129,6 @@ def plot_trajectories(
     label to another state vector drawn thin and dotted (e.g. a second solver).
     ``ax``: draw into an existing axes instead of a new figure.
     """
-    from matplotlib.patches import Circle
-
     if not isinstance(game, PotentialGame):
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     x = np.asarray(x, dtype=float).reshape(-1)
@@ -141,20 +139,7 @@ def plot_trajectories(
     # NaN/inf or absurdly far positions (a failed solve) are left out of the frame and not
     # drawn: matplotlib cannot place ticks on a 1e308 m axis
     pos = _drawable(game.positions(x))  # (N, K+1, 2)
-    # frame: trajectories and goals, a margin of the largest radius (paths may be long)
-    pts = [pos.reshape(-1, 2)]
-    for a in game.agents:
-        if f"goal.{a.name}" in blocks:
-            pts.append(blocks[f"goal.{a.name}"][None, :])
-        elif a.goal is not None:
-            pts.append(np.asarray(a.goal, dtype=float)[None, :])
-    allp = _drawable(np.concatenate(pts))
-    allp = allp[np.isfinite(allp).all(axis=1)]
-    if not allp.size:
-        allp = np.zeros((1, 2))
-    r = max((a.radius for a in game.agents), default=0.0)
-    r = r if r <= _FAR else 0.0
-    lo, hi = allp.min(axis=0) - r - 0.5, allp.max(axis=0) + r + 0.5
+    lo, hi = _frame(game, pos, blocks)
     fig = None
     if ax is None:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -164,44 +149,8 @@ def plot_trajectories(
         ax = fig.add_subplot(1, 1, 1)
     colors = agent_colors(game.N)
     steps = _snapshot_steps(game.K, snapshots)
-    for i, a in enumerate(game.agents):
-        c = colors[i]
-        if f"path.{a.name}" in blocks:
-            poly = blocks[f"path.{a.name}"].reshape(-1, 2)
-            ax.plot(poly[:, 0], poly[:, 1], ls="--", lw=1.0, color=c, alpha=0.45, zorder=1)
-        ax.plot(pos[i, :, 0], pos[i, :, 1], "-", lw=1.8, color=c, zorder=3, label=a.name)
-        for k in steps:
-            if not np.all(np.isfinite(pos[i, k])) or not a.radius <= _FAR:
-                continue
-            alpha = 0.15 + 0.35 * k / max(game.K, 1)
-            ax.add_patch(
-                Circle(
-                    tuple(pos[i, k]),
-                    a.radius,
-                    facecolor=c,
-                    edgecolor=c,
-                    alpha=alpha,
-                    lw=1.0,
-                    zorder=2,
-                )
-            )
-            if a.radius > 0:
-                ax.annotate(
-                    str(k),
-                    tuple(pos[i, k]),
-                    ha="center",
-                    va="center",
-                    fontsize=6,
-                    color="black",
-                    zorder=4,
-                )
-        if np.all(np.isfinite(pos[i, 0])):
-            ax.plot(*pos[i, 0], "o", ms=7, color=c, markeredgecolor="black", zorder=5)
-        if f"goal.{a.name}" in blocks:
-            g = blocks[f"goal.{a.name}"]
-            ax.plot(g[0], g[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
-        elif a.goal is not None:
-            ax.plot(a.goal[0], a.goal[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
+    for i in range(game.N):
+        _draw_agent(ax, game, i, colors[i], pos, blocks, steps)
     for label, xo in (others or {}).items():
         po = _drawable(game.positions(np.asarray(xo, dtype=float).reshape(-1)))
         for i in range(game.N):
@@ -230,6 +179,68 @@ def plot_trajectories(
     if fig is None:  # drawn into the caller's axes
         return _save(ax.figure, path)
     return _save(fig, path)
+
+
+def _frame(game: PotentialGame, pos: np.ndarray, blocks: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corner of the drawn area: trajectories and goals, a margin of the
+    largest radius (paths may be long and are left out)."""
+    pts = [pos.reshape(-1, 2)]
+    for a in game.agents:
+        if f"goal.{a.name}" in blocks:
+            pts.append(blocks[f"goal.{a.name}"][None, :])
+        elif a.goal is not None:
+            pts.append(np.asarray(a.goal, dtype=float)[None, :])
+    allp = _drawable(np.concatenate(pts))
+    allp = allp[np.isfinite(allp).all(axis=1)]
+    if not allp.size:
+        allp = np.zeros((1, 2))
+    r = max((a.radius for a in game.agents), default=0.0)
+    r = r if r <= _FAR else 0.0
+    return allp.min(axis=0) - r - 0.5, allp.max(axis=0) + r + 0.5
+
+
+def _draw_agent(ax, game: PotentialGame, i: int, c, pos: np.ndarray, blocks: dict, steps) -> None:
+    """Agent ``i`` in colour ``c``: its reference path, trajectory, circles at ``steps``
+    with the step number, start marker and goal star."""
+    from matplotlib.patches import Circle
+
+    a = game.agents[i]
+    if f"path.{a.name}" in blocks:
+        poly = blocks[f"path.{a.name}"].reshape(-1, 2)
+        ax.plot(poly[:, 0], poly[:, 1], ls="--", lw=1.0, color=c, alpha=0.45, zorder=1)
+    ax.plot(pos[i, :, 0], pos[i, :, 1], "-", lw=1.8, color=c, zorder=3, label=a.name)
+    for k in steps:
+        if not np.all(np.isfinite(pos[i, k])) or not a.radius <= _FAR:
+            continue
+        alpha = 0.15 + 0.35 * k / max(game.K, 1)
+        ax.add_patch(
+            Circle(
+                tuple(pos[i, k]),
+                a.radius,
+                facecolor=c,
+                edgecolor=c,
+                alpha=alpha,
+                lw=1.0,
+                zorder=2,
+            )
+        )
+        if a.radius > 0:
+            ax.annotate(
+                str(k),
+                tuple(pos[i, k]),
+                ha="center",
+                va="center",
+                fontsize=6,
+                color="black",
+                zorder=4,
+            )
+    if np.all(np.isfinite(pos[i, 0])):
+        ax.plot(*pos[i, 0], "o", ms=7, color=c, markeredgecolor="black", zorder=5)
+    if f"goal.{a.name}" in blocks:
+        g = blocks[f"goal.{a.name}"]
+        ax.plot(g[0], g[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
+    elif a.goal is not None:
+        ax.plot(a.goal[0], a.goal[1], "*", ms=14, color=c, markeredgecolor="black", zorder=5)
 
 
 def plot_modes(

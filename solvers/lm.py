@@ -207,118 +207,160 @@ def _solve_lm(game, p, u0, opts, backend) -> SolveResult:
     t0 = time.perf_counter()
     single = np.ndim(p) == 1 and (u0 is None or np.ndim(u0) == 1)
     U, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)
-    U = U.copy()
-    B = U.shape[0]
     be = backend or make_backend(game, opts)
-
-    lam = np.full(B, float(opts.damping))
-    active = np.ones(B, dtype=bool)
-    status = np.full(B, Status.MAX_ITER, dtype=object)
-    stop = np.full(B, "max_iter", dtype=object)  # why each problem stopped (info["stop"])
-    iters = np.zeros(B, dtype=int)
-    lin = be.linearize(U, P)
-    E = lin.energy.copy()
-    # history grows with the steps taken (a loop that ended early stops here, whatever
-    # opts.steps is), never with the iteration limit
-    hist = [E.copy()]
-    lam_hist = [lam.copy()]
-    bad = ~np.isfinite(E) | ~np.all(np.isfinite(lin.gradient), axis=1)
-    status[bad], active[bad], stop[bad] = Status.NONFINITE, False, "nonfinite"
-
-    def converged_grad(lin_):
-        return (
-            np.max(np.abs(lin_.gradient), axis=1) <= opts.gtol
-            if opts.gtol > 0
-            else np.zeros(B, bool)
-        )
-
-    done = converged_grad(lin) & active
-    status[done], active[done], stop[done] = Status.CONVERGED, False, "gtol"
-
+    s = _LMState.start(be, U.copy(), P, opts)
     for _ in range(opts.steps):
-        if not active.any():
+        if not s.active.any():
             break
-        du = be.solve(lin, lam, -lin.gradient, opts.ellipsoidal)
-        U_try = U + opts.step_size * du
-        finite = np.all(np.isfinite(U_try), axis=1)
-        U_try[~finite] = U[~finite]
-        if opts.adaptive_damping:
-            E_try = be.energy(U_try, P)
-            accept = active & finite & np.isfinite(E_try) & (E_try < E)
-        else:
-            accept = active & finite
-        iters[active] += 1
-        U_prev = U.copy()
-        U[accept] = U_try[accept]
-        new_lin = be.linearize(U, P)
-        E_new = new_lin.energy
-        nonfinite = active & (~finite | ~np.isfinite(E_new))
-        if nonfinite.any():  # freeze at the last finite iterate
-            U[nonfinite] = U_prev[nonfinite]
-            status[nonfinite], active[nonfinite] = Status.NONFINITE, False
-            stop[nonfinite] = "nonfinite"
-        decrease = E - E_new
-        if opts.adaptive_damping:
-            lam = np.where(accept, np.maximum(lam * opts.damping_down, opts.min_damping), lam)
-            lam = np.where(active & ~accept, lam * opts.damping_up, lam)
-            capped = active & (lam > opts.max_damping)
-            status[capped], active[capped], stop[capped] = Status.STALLED, False, "max_damping"
-        keep = ~nonfinite
-        E = np.where(keep, E_new, E)
-        lin = _merge(lin, new_lin, keep)
-        grad_ok = active & converged_grad(lin)
-        status[grad_ok], active[grad_ok], stop[grad_ok] = Status.CONVERGED, False, "gtol"
-        if opts.ftol > 0:
-            small = active & accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(E)))
-            status[small], active[small], stop[small] = Status.STALLED, False, "ftol"
-        hist.append(E.copy())
-        lam_hist.append(lam.copy())
-
-    # Polish: a stop without progress above gtol gets a few exact-Hessian Newton steps
+        _lm_step(s, be, opts)
     if opts.polish and opts.gtol > 0 and game.n_u:
-        cand = (
-            np.isin(stop, ("ftol", "max_damping"))
-            & (np.max(np.abs(lin.gradient), axis=1) > opts.gtol)
-            & (status != Status.NONFINITE)
-        )
-        if cand.any():
-            U, done = _polish(game, U, P, cand, opts)
-            new_lin = be.linearize(U, P)
-            E = np.where(cand, new_lin.energy, E)
-            lin = _merge(lin, new_lin, cand)
-            status[done], stop[done] = Status.CONVERGED, "polish"
-    # A stop without progress (ftol, damping cap) is converged only where the first-order
-    # test holds; otherwise the iterate is a stall, not a stationary point.
-    cos = np.zeros(B)
-    candidates = (status == Status.STALLED) & (stop != "polish")
-    if candidates.any():
-        cos = residual_cosine(lin, be)
-        status[candidates & (cos <= opts.ctol)] = Status.CONVERGED
+        _polish_stops(s, game, be, opts)
+    cos = _judge_stalls(s, be, opts)
+    res = _lm_result(s, game, opts, cos, time.perf_counter() - t0)
+    return res[0] if single else res
 
+
+@dataclass
+class _LMState:
+    """The batch's iterate and bookkeeping during :func:`solve_lm`."""
+
+    U: np.ndarray  #: controls ``(B, n_u)``
+    P: np.ndarray  #: parameters ``(B, n_p)``
+    lin: Linearization  #: the linearization at ``U``
+    E: np.ndarray  #: energies ``(B,)``
+    lam: np.ndarray  #: damping ``(B,)``
+    active: np.ndarray  #: problems still iterating ``(B,)``
+    status: np.ndarray  #: :class:`Status` per problem
+    stop: np.ndarray  #: why each problem stopped (``info["stop"]``)
+    iters: np.ndarray  #: iterations per problem
+    hist: list  #: energies after each step taken
+    lam_hist: list  #: damping after each step taken
+
+    @classmethod
+    def start(cls, be, U, P, opts: LMOptions) -> _LMState:
+        """The state at ``U``: problems non-finite or already below ``gtol`` are stopped."""
+        B = U.shape[0]
+        lam = np.full(B, float(opts.damping))
+        active = np.ones(B, dtype=bool)
+        status = np.full(B, Status.MAX_ITER, dtype=object)
+        stop = np.full(B, "max_iter", dtype=object)
+        iters = np.zeros(B, dtype=int)
+        lin = be.linearize(U, P)
+        E = lin.energy.copy()
+        # history grows with the steps taken (a loop that ended early stops here, whatever
+        # opts.steps is), never with the iteration limit
+        s = cls(U, P, lin, E, lam, active, status, stop, iters, [E.copy()], [lam.copy()])
+        bad = ~np.isfinite(E) | ~np.all(np.isfinite(lin.gradient), axis=1)
+        s.finish(bad, Status.NONFINITE, "nonfinite")
+        done = _converged_grad(lin, opts.gtol) & active
+        s.finish(done, Status.CONVERGED, "gtol")
+        return s
+
+    def finish(self, mask: np.ndarray, status: Status, stop: str) -> None:
+        """Stop the problems ``mask`` with ``status`` and the reason ``stop``."""
+        self.status[mask], self.active[mask], self.stop[mask] = status, False, stop
+
+
+def _converged_grad(lin: Linearization, gtol: float) -> np.ndarray:
+    """``(B,)``: the gradient's inf-norm is at most ``gtol`` (all False for ``gtol = 0``)."""
+    if gtol > 0:
+        return np.max(np.abs(lin.gradient), axis=1) <= gtol
+    return np.zeros(lin.gradient.shape[0], bool)
+
+
+def _lm_step(s: _LMState, be, opts: LMOptions) -> None:
+    """One damped Gauss-Newton step of every active problem, then the stopping tests."""
+    U, P, active = s.U, s.P, s.active
+    du = be.solve(s.lin, s.lam, -s.lin.gradient, opts.ellipsoidal)
+    U_try = U + opts.step_size * du
+    finite = np.all(np.isfinite(U_try), axis=1)
+    U_try[~finite] = U[~finite]
+    if opts.adaptive_damping:
+        E_try = be.energy(U_try, P)
+        accept = active & finite & np.isfinite(E_try) & (E_try < s.E)
+    else:
+        accept = active & finite
+    s.iters[active] += 1
+    U_prev = U.copy()
+    U[accept] = U_try[accept]
+    new_lin = be.linearize(U, P)
+    E_new = new_lin.energy
+    nonfinite = active & (~finite | ~np.isfinite(E_new))
+    if nonfinite.any():  # freeze at the last finite iterate
+        U[nonfinite] = U_prev[nonfinite]
+        s.status[nonfinite], active[nonfinite] = Status.NONFINITE, False
+        s.stop[nonfinite] = "nonfinite"
+    decrease = s.E - E_new
+    if opts.adaptive_damping:
+        lam = np.where(accept, np.maximum(s.lam * opts.damping_down, opts.min_damping), s.lam)
+        s.lam = np.where(active & ~accept, lam * opts.damping_up, lam)
+        s.finish(active & (s.lam > opts.max_damping), Status.STALLED, "max_damping")
+    keep = ~nonfinite
+    s.E = np.where(keep, E_new, s.E)
+    s.lin = _merge(s.lin, new_lin, keep)
+    s.finish(active & _converged_grad(s.lin, opts.gtol), Status.CONVERGED, "gtol")
+    if opts.ftol > 0:
+        small = active & accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(s.E)))
+        s.finish(small, Status.STALLED, "ftol")
+    s.hist.append(s.E.copy())
+    s.lam_hist.append(s.lam.copy())
+
+
+def _polish_stops(s: _LMState, game: PotentialGame, be, opts: LMOptions) -> None:
+    """A stop without progress above ``gtol`` gets a few exact-Hessian Newton steps."""
+    cand = (
+        np.isin(s.stop, ("ftol", "max_damping"))
+        & (np.max(np.abs(s.lin.gradient), axis=1) > opts.gtol)
+        & (s.status != Status.NONFINITE)
+    )
+    if cand.any():
+        s.U, done = _polish(game, s.U, s.P, cand, opts)
+        new_lin = be.linearize(s.U, s.P)
+        s.E = np.where(cand, new_lin.energy, s.E)
+        s.lin = _merge(s.lin, new_lin, cand)
+        s.status[done], s.stop[done] = Status.CONVERGED, "polish"
+
+
+def _judge_stalls(s: _LMState, be, opts: LMOptions) -> np.ndarray:
+    """A stop without progress (ftol, damping cap) is converged only where the first-order
+    test holds; otherwise the iterate is a stall, not a stationary point. Returns the
+    residual cosines ``(B,)`` (zeros when nothing stalled)."""
+    cos = np.zeros(s.U.shape[0])
+    candidates = (s.status == Status.STALLED) & (s.stop != "polish")
+    if candidates.any():
+        cos = residual_cosine(s.lin, be)
+        s.status[candidates & (cos <= opts.ctol)] = Status.CONVERGED
+    return cos
+
+
+def _lm_result(s: _LMState, game: PotentialGame, opts: LMOptions, cos, wall) -> SolveResult:
+    """The batched :class:`SolveResult` of the final state (states and costs rolled out)."""
+    U, P, E = s.U, s.P, s.E
     X = _rollout(game, U, P, opts.threads)
     C = batch_function(game, "agent_costs", opts.threads)(U, P)[0]
-    status = demote_nonfinite(status, E[:, None], X, C)
+    status = demote_nonfinite(s.status, E[:, None], X, C)
+    stop = s.stop
     stop[(status == Status.NONFINITE) & (stop != "nonfinite")] = "nonfinite"
-    res = SolveResult(
+    B = U.shape[0]
+    return SolveResult(
         solver="lm",
         controls=U,
         states=X,
         energy=E,
         agent_costs=C,
         status=status,
-        iterations=iters,
-        energy_history=np.stack(hist),
-        grad_norm=np.max(np.abs(lin.gradient), axis=1) if game.n_u else np.zeros(B),
-        wall_time=time.perf_counter() - t0,
+        iterations=s.iters,
+        energy_history=np.stack(s.hist),
+        grad_norm=np.max(np.abs(s.lin.gradient), axis=1) if game.n_u else np.zeros(B),
+        wall_time=wall,
         info={
-            "damping": lam,
-            "damping_history": np.stack(lam_hist),
+            "damping": s.lam,
+            "damping_history": np.stack(s.lam_hist),
             "stop": stop,
             "residual_cosine": cos,
             "options": opts,
         },
     )
-    return res[0] if single else res
 
 
 def _polish(game: PotentialGame, U, P, cand, opts) -> tuple[np.ndarray, np.ndarray]:

@@ -246,15 +246,7 @@ def solve_multimodal(
         raise SpecError("game", f"expected a PotentialGame, got {type(game).__name__}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
         raise SpecError("n_samples", f"expected an integer >= 1, got {n_samples!r}")
-    entry = SOLVERS.entry(solver, "solver")
-    if not entry.multimodal:
-        usable = [n for n, e in SOLVERS.items() if e.multimodal]
-        raise SpecError(
-            "solver", f"expected a solver of many starts, one of {usable}, got {solver!r}"
-        )
-    if costs is not None and not entry.takes("costs"):
-        takers = [n for n, e in SOLVERS.items() if e.takes("costs")]
-        raise SpecError("costs", f"custom player costs need a solver of {takers}, not {solver!r}")
+    entry = _multimodal_entry(solver, costs)
     mm = check_options(MultiModalOptions, clustering, "multimodal")
     n = int(n_samples)
     p = np.asarray(p, dtype=float)
@@ -262,12 +254,7 @@ def solve_multimodal(
         raise SpecError(
             "p", f"expected one parameter vector of {game.n_p} entries, got shape {p.shape}"
         )
-    rng = np.random.default_rng(seed)
-    U0 = np.asarray((sampler or sinusoid_sampler)(game, p, n, rng), dtype=float)
-    if U0.shape != (n, game.n_u):
-        raise SpecError(
-            "sampler", f"expected initial strategies of shape ({n}, {game.n_u}), got {U0.shape}"
-        )
+    U0 = _sample_starts(game, p, n, seed, sampler)
     P = np.broadcast_to(p, (n, game.n_p))
     extra = {} if costs is None else {"costs": costs}
     res = entry.solve(game, P, U0, options=options, **extra)
@@ -279,46 +266,8 @@ def solve_multimodal(
     finite = np.isfinite(res.controls).all(axis=1) & np.isfinite(res.states).all(axis=1)
     clearance = min_clearance(game, res.states, P)
     kept = good & finite & (clearance >= -mm.collision_tol)
-    idx = np.nonzero(kept)[0]
-    labels = np.full(n, -1, dtype=int)
-    modes: list[Mode] = []
     sides = passing_sides(game, res.states, mm.pass_angle) if game.N > 1 else np.zeros((n, 0), int)
-    if idx.size:
-        D = trajectory_distances(game, res.states[idx])
-        if mm.cluster == "passing":
-            keys = [tuple(int(v) for v in sides[i]) for i in idx]
-            uniq = sorted(set(keys))
-            raw = np.array([uniq.index(k) for k in keys])
-        else:
-            raw = _agglomerate(D, mm.cluster_tol, mm.linkage)
-        energy = np.asarray(res.energy, float).reshape(n)
-        groups = []
-        for c in np.unique(raw):
-            loc = np.nonzero(raw == c)[0]
-            sub = D[np.ix_(loc, loc)]
-            med = loc[int(np.argmin(sub.sum(axis=1)))]  # argmin: first index on ties
-            mean_e = (
-                float(np.mean(energy[idx[loc]]))
-                if np.all(np.isfinite(energy[idx[loc]]))
-                else math.inf
-            )
-            groups.append((-loc.size, mean_e, int(idx[loc[0]]), loc, med))
-        groups.sort(key=lambda g: g[:3])
-        for m, (_, _, _, loc, med) in enumerate(groups):
-            labels[idx[loc]] = m
-            j = int(idx[med])
-            modes.append(
-                Mode(
-                    controls=np.array(res.controls[j]),
-                    states=np.array(res.states[j]),
-                    share=loc.size / idx.size,
-                    cost=np.array(res.agent_costs[j]),
-                    energy=float(energy[j]),
-                    members=idx[loc].copy(),
-                    medoid=j,
-                    passing=tuple(int(v) for v in sides[j]),
-                )
-            )
+    labels, modes = _modes(game, res, np.nonzero(kept)[0], sides, mm)
     return MultiModalResult(
         modes=modes,
         labels=labels,
@@ -335,6 +284,78 @@ def solve_multimodal(
             "dropped_collision": int((good & finite & (clearance < -mm.collision_tol)).sum()),
         },
     )
+
+
+def _multimodal_entry(solver: str, costs):
+    """The table's entry of ``solver``; refused unless it is a solver of many starts (and,
+    with custom ``costs``, one that takes them)."""
+    entry = SOLVERS.entry(solver, "solver")
+    if not entry.multimodal:
+        usable = [n for n, e in SOLVERS.items() if e.multimodal]
+        raise SpecError(
+            "solver", f"expected a solver of many starts, one of {usable}, got {solver!r}"
+        )
+    if costs is not None and not entry.takes("costs"):
+        takers = [n for n, e in SOLVERS.items() if e.takes("costs")]
+        raise SpecError("costs", f"custom player costs need a solver of {takers}, not {solver!r}")
+    return entry
+
+
+def _sample_starts(game: PotentialGame, p, n: int, seed, sampler) -> np.ndarray:
+    """Step 1: ``n`` initial joint strategies ``(n, n_u)`` from a generator seeded by ``seed``."""
+    rng = np.random.default_rng(seed)
+    U0 = np.asarray((sampler or sinusoid_sampler)(game, p, n, rng), dtype=float)
+    if U0.shape != (n, game.n_u):
+        raise SpecError(
+            "sampler", f"expected initial strategies of shape ({n}, {game.n_u}), got {U0.shape}"
+        )
+    return U0
+
+
+def _modes(
+    game: PotentialGame, res: SolveResult, idx: np.ndarray, sides: np.ndarray, mm
+) -> tuple[np.ndarray, list[Mode]]:
+    """Steps 4 and 5 on the kept solves ``idx``: each sample's mode label (``-1`` for the
+    dropped) and the modes, sorted by share."""
+    n = sides.shape[0]
+    labels = np.full(n, -1, dtype=int)
+    modes: list[Mode] = []
+    if not idx.size:
+        return labels, modes
+    D = trajectory_distances(game, res.states[idx])
+    if mm.cluster == "passing":
+        keys = [tuple(int(v) for v in sides[i]) for i in idx]
+        uniq = sorted(set(keys))
+        raw = np.array([uniq.index(k) for k in keys])
+    else:
+        raw = _agglomerate(D, mm.cluster_tol, mm.linkage)
+    energy = np.asarray(res.energy, float).reshape(n)
+    groups = []
+    for c in np.unique(raw):
+        loc = np.nonzero(raw == c)[0]
+        sub = D[np.ix_(loc, loc)]
+        med = loc[int(np.argmin(sub.sum(axis=1)))]  # argmin: first index on ties
+        mean_e = (
+            float(np.mean(energy[idx[loc]])) if np.all(np.isfinite(energy[idx[loc]])) else math.inf
+        )
+        groups.append((-loc.size, mean_e, int(idx[loc[0]]), loc, med))
+    groups.sort(key=lambda g: g[:3])
+    for m, (_, _, _, loc, med) in enumerate(groups):
+        labels[idx[loc]] = m
+        j = int(idx[med])
+        modes.append(
+            Mode(
+                controls=np.array(res.controls[j]),
+                states=np.array(res.states[j]),
+                share=loc.size / idx.size,
+                cost=np.array(res.agent_costs[j]),
+                energy=float(energy[j]),
+                members=idx[loc].copy(),
+                medoid=j,
+                passing=tuple(int(v) for v in sides[j]),
+            )
+        )
+    return labels, modes
 
 
 def _agglomerate(D: np.ndarray, tol: float, method: str) -> np.ndarray:

@@ -232,19 +232,7 @@ class NashChecker:
         u, p = u.reshape(-1), p.reshape(-1)
         o = self.options
         methods = tuple(self.method(i) for i in range(g.N))
-        if finite_in:
-            with np.errstate(all="ignore"):
-                C = np.asarray(self._costs(u, p), dtype=float).reshape(-1)
-                pg = np.asarray(self._pg(u, p), dtype=float).reshape(-1)
-            stat = np.array(
-                [np.max(np.abs(pg[g.uoff[i] : g.uoff[i + 1]]), initial=0.0) for i in range(g.N)]
-            )
-            stat[[not np.all(np.isfinite(pg[g.uoff[i] : g.uoff[i + 1]])) for i in range(g.N)]] = (
-                np.nan
-            )
-        else:
-            C = np.full(g.N, np.nan)
-            stat = np.full(g.N, np.nan)
+        C, stat = self._stationarity(u, p, finite_in)
         finite = np.isfinite(C) & np.isfinite(stat)
         scale = 1.0 + np.minimum(np.abs(np.nan_to_num(C, nan=np.inf)), o.scale_cap)
         stat_ok = finite & (stat <= o.stat_tol * scale)
@@ -252,40 +240,15 @@ class NashChecker:
         gap_ok = finite.copy()
         statuses, reasons = [], []
         todo = [i for i in range(g.N) if finite[i] and methods[i] in ("exact", "l-bfgs")]
-        work = sum(int(g.uoff[i + 1] - g.uoff[i]) for i in todo)
-        from tqdm.auto import tqdm
-
-        bar = tqdm(
-            total=len(todo),
-            desc="Nash certificate: best responses",
-            unit="agent",
-            disable=None if work >= 400 else True,
-            leave=False,
-        )
+        bar = self._progress(todo)
         for i in range(g.N):
-            why = []
-            if not finite_in:
-                why.append("the controls or parameters are not finite")
-            elif not finite[i]:
-                why.append("the cost or its gradient is not finite")
-            elif not stat_ok[i]:
-                why.append(
-                    f"stationarity {stat[i]:.3g} > stat_tol x (1 + min(|C_i|, scale_cap)) "
-                    f"= {o.stat_tol * scale[i]:.3g}"
-                )
+            why = self._first_order_reasons(i, finite_in, finite, stat_ok, stat, scale)
             if i not in todo:
                 statuses.append("skipped")
                 reasons.append("; ".join(why))
                 continue
-            a, b = int(g.uoff[i]), int(g.uoff[i + 1])
-            solver = self.best_response_nlp(i)
-            others = np.concatenate([u[:a], u[b:]])
-            sol = solver(x0=u[a:b], p=np.concatenate([p, others]))
-            st = str(solver.stats().get("return_status", "unknown"))
+            st, cand = self._best_response(i, u, p)
             statuses.append(st)
-            ui = np.asarray(sol["x"], dtype=float).reshape(-1)
-            with np.errstate(all="ignore"):
-                cand = float(self._costs(np.concatenate([u[:a], ui, u[b:]]), p)[i])
             if np.isfinite(cand):
                 br[i] = min(C[i], cand)
             gap_i = C[i] - br[i]
@@ -319,6 +282,63 @@ class NashChecker:
             time_s=time.perf_counter() - t0,
             options=o,
         )
+
+    def _stationarity(self, u, p, finite_in: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Each agent's cost ``C_i`` and stationarity ``max |dC_i/du_i|`` (``(N,)`` each;
+        NaN where not finite or where the inputs are not)."""
+        g = self.game
+        if not finite_in:
+            return np.full(g.N, np.nan), np.full(g.N, np.nan)
+        with np.errstate(all="ignore"):
+            C = np.asarray(self._costs(u, p), dtype=float).reshape(-1)
+            pg = np.asarray(self._pg(u, p), dtype=float).reshape(-1)
+        stat = np.array(
+            [np.max(np.abs(pg[g.uoff[i] : g.uoff[i + 1]]), initial=0.0) for i in range(g.N)]
+        )
+        stat[[not np.all(np.isfinite(pg[g.uoff[i] : g.uoff[i + 1]])) for i in range(g.N)]] = np.nan
+        return C, stat
+
+    def _progress(self, todo: list[int]):
+        """A progress bar over the best-response solves, shown for large problems only."""
+        g = self.game
+        work = sum(int(g.uoff[i + 1] - g.uoff[i]) for i in todo)
+        from tqdm.auto import tqdm
+
+        return tqdm(
+            total=len(todo),
+            desc="Nash certificate: best responses",
+            unit="agent",
+            disable=None if work >= 400 else True,
+            leave=False,
+        )
+
+    def _first_order_reasons(self, i, finite_in, finite, stat_ok, stat, scale) -> list[str]:
+        """Why agent ``i`` fails the first-order test (empty where it passes)."""
+        why = []
+        if not finite_in:
+            why.append("the controls or parameters are not finite")
+        elif not finite[i]:
+            why.append("the cost or its gradient is not finite")
+        elif not stat_ok[i]:
+            why.append(
+                f"stationarity {stat[i]:.3g} > stat_tol x (1 + min(|C_i|, scale_cap)) "
+                f"= {self.options.stat_tol * scale[i]:.3g}"
+            )
+        return why
+
+    def _best_response(self, i: int, u, p) -> tuple[str, float]:
+        """Agent ``i``'s best response to the others' ``u_{-i}`` from its own ``u_i``:
+        IPOPT's return status and the cost ``C_i`` at the response."""
+        g = self.game
+        a, b = int(g.uoff[i]), int(g.uoff[i + 1])
+        solver = self.best_response_nlp(i)
+        others = np.concatenate([u[:a], u[b:]])
+        sol = solver(x0=u[a:b], p=np.concatenate([p, others]))
+        st = str(solver.stats().get("return_status", "unknown"))
+        ui = np.asarray(sol["x"], dtype=float).reshape(-1)
+        with np.errstate(all="ignore"):
+            cand = float(self._costs(np.concatenate([u[:a], ui, u[b:]]), p)[i])
+        return st, cand
 
 
 def nash_certificate(

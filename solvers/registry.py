@@ -369,7 +369,7 @@ def _prepare_ilq(game: PotentialGame, p, u0, o: ILQOptions) -> None:
 
 
 def _prepare_sqp(game: PotentialGame, p, u0, o: SQPOptions) -> None:
-    from .sqp import _solver_for
+    from .sqp.solver import _solver_for
 
     _solver_for(game, o).prepare(p, u0)
 
