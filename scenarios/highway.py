@@ -764,6 +764,8 @@ def _run_pool(units, workers: int):
     shut down before the exception goes on, so no process or semaphore outlives it."""
     from concurrent.futures import FIRST_COMPLETED, wait
 
+    from .dataset.engine import stop_pool
+
     ex = _pool(workers)
     finished = False
     flight: dict = {}  # future -> its unit
@@ -784,14 +786,7 @@ def _run_pool(units, workers: int):
         finished = True
     finally:
         if not finished:
-            procs = list((getattr(ex, "_processes", None) or {}).values())
-            ex.shutdown(wait=False, cancel_futures=True)
-            for proc in procs:
-                with contextlib.suppress(Exception):
-                    proc.terminate()
-            for proc in procs:
-                with contextlib.suppress(Exception):
-                    proc.join(timeout=5)
+            stop_pool(ex)
             for out, _, _, _, i in flight.values():  # stopped while writing: no part stays
                 _discard_partial(FilePath(out), i)
         ex.shutdown(wait=True, cancel_futures=True)

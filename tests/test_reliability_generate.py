@@ -363,6 +363,9 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
         if p.poll() is None:
             p.kill()
             p.wait()
+        for pipe in (p.stdout, p.stderr):  # closed also when the test fails
+            if pipe is not None:
+                pipe.close()
     t0 = time.monotonic()
     while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
         time.sleep(0.05)

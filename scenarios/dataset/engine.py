@@ -99,6 +99,20 @@ def _worker_init(parent_pid: int) -> None:
     threading.Thread(target=watch, name="epo-parent-watch", daemon=True).start()
 
 
+def stop_pool(ex) -> None:
+    """Stop a ``ProcessPoolExecutor``'s work in flight now: cancel what has not started,
+    terminate the worker processes and wait a little for each (an interrupted or failed
+    run; the caller still calls ``ex.shutdown(wait=True)`` to release the pool)."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())
+    ex.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.terminate()
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.join(timeout=5)
+
+
 def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -> Iterator[tuple]:
     if workers <= 1:
         for i in units:
@@ -132,14 +146,7 @@ def _iter_local(scenario: Scenario, units: list[int], seed: int, workers: int) -
         finished = True
     finally:
         if not finished:  # interrupted or failed: stop the units in flight now
-            procs = list((getattr(ex, "_processes", None) or {}).values())
-            ex.shutdown(wait=False, cancel_futures=True)
-            for proc in procs:
-                with contextlib.suppress(Exception):
-                    proc.terminate()
-            for proc in procs:
-                with contextlib.suppress(Exception):
-                    proc.join(timeout=5)
+            stop_pool(ex)
         ex.shutdown(wait=True, cancel_futures=True)
 
 
