@@ -35,7 +35,7 @@ from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
 from .gn import DenseGN, Linearization  # the shared backend piece, one level down
-from .result import SolveResult, Status, demote_nonfinite
+from .result import SolveResult, Status, StopReason, demote_nonfinite
 
 __all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options", "MAX_STEPS"]
 
@@ -243,7 +243,7 @@ class _LMState:
         lam = np.full(B, float(opts.damping))
         active = np.ones(B, dtype=bool)
         status = np.full(B, Status.MAX_ITER, dtype=object)
-        stop = np.full(B, "max_iter", dtype=object)
+        stop = np.array([StopReason.MAX_ITER] * B, dtype=object)
         iters = np.zeros(B, dtype=int)
         lin = be.linearize(U, P)
         E = lin.energy.copy()
@@ -251,12 +251,12 @@ class _LMState:
         # opts.steps is), never with the iteration limit
         s = cls(U, P, lin, E, lam, active, status, stop, iters, [E.copy()], [lam.copy()])
         bad = ~np.isfinite(E) | ~np.all(np.isfinite(lin.gradient), axis=1)
-        s.finish(bad, Status.NONFINITE, "nonfinite")
+        s.finish(bad, Status.NONFINITE, StopReason.NONFINITE)
         done = _converged_grad(lin, opts.gtol) & active
-        s.finish(done, Status.CONVERGED, "gtol")
+        s.finish(done, Status.CONVERGED, StopReason.GTOL)
         return s
 
-    def finish(self, mask: np.ndarray, status: Status, stop: str) -> None:
+    def finish(self, mask: np.ndarray, status: Status, stop: StopReason) -> None:
         """Stop the problems ``mask`` with ``status`` and the reason ``stop``."""
         self.status[mask], self.active[mask], self.stop[mask] = status, False, stop
 
@@ -289,19 +289,19 @@ def _lm_step(s: _LMState, be, opts: LMOptions) -> None:
     if nonfinite.any():  # freeze at the last finite iterate
         U[nonfinite] = U_prev[nonfinite]
         s.status[nonfinite], active[nonfinite] = Status.NONFINITE, False
-        s.stop[nonfinite] = "nonfinite"
+        s.stop[nonfinite] = StopReason.NONFINITE
     decrease = s.E - E_new
     if opts.adaptive_damping:
         lam = np.where(accept, np.maximum(s.lam * opts.damping_down, opts.min_damping), s.lam)
         s.lam = np.where(active & ~accept, lam * opts.damping_up, lam)
-        s.finish(active & (s.lam > opts.max_damping), Status.STALLED, "max_damping")
+        s.finish(active & (s.lam > opts.max_damping), Status.STALLED, StopReason.MAX_DAMPING)
     keep = ~nonfinite
     s.E = np.where(keep, E_new, s.E)
     s.lin = _merge(s.lin, new_lin, keep)
-    s.finish(active & _converged_grad(s.lin, opts.gtol), Status.CONVERGED, "gtol")
+    s.finish(active & _converged_grad(s.lin, opts.gtol), Status.CONVERGED, StopReason.GTOL)
     if opts.ftol > 0:
         small = active & accept & (np.abs(decrease) <= opts.ftol * (1 + np.abs(s.E)))
-        s.finish(small, Status.STALLED, "ftol")
+        s.finish(small, Status.STALLED, StopReason.FTOL)
     s.hist.append(s.E.copy())
     s.lam_hist.append(s.lam.copy())
 
@@ -309,7 +309,7 @@ def _lm_step(s: _LMState, be, opts: LMOptions) -> None:
 def _polish_stops(s: _LMState, game: PotentialGame, be, opts: LMOptions) -> None:
     """A stop without progress above ``gtol`` gets a few exact-Hessian Newton steps."""
     cand = (
-        np.isin(s.stop, ("ftol", "max_damping"))
+        np.isin(s.stop, (StopReason.FTOL, StopReason.MAX_DAMPING))
         & (np.max(np.abs(s.lin.gradient), axis=1) > opts.gtol)
         & (s.status != Status.NONFINITE)
     )
@@ -318,7 +318,7 @@ def _polish_stops(s: _LMState, game: PotentialGame, be, opts: LMOptions) -> None
         new_lin = be.linearize(s.U, s.P)
         s.E = np.where(cand, new_lin.energy, s.E)
         s.lin = _merge(s.lin, new_lin, cand)
-        s.status[done], s.stop[done] = Status.CONVERGED, "polish"
+        s.status[done], s.stop[done] = Status.CONVERGED, StopReason.POLISH
 
 
 def _judge_stalls(s: _LMState, be, opts: LMOptions) -> np.ndarray:
@@ -326,7 +326,7 @@ def _judge_stalls(s: _LMState, be, opts: LMOptions) -> np.ndarray:
     test holds; otherwise the iterate is a stall, not a stationary point. Returns the
     residual cosines ``(B,)`` (zeros when nothing stalled)."""
     cos = np.zeros(s.U.shape[0])
-    candidates = (s.status == Status.STALLED) & (s.stop != "polish")
+    candidates = (s.status == Status.STALLED) & (s.stop != StopReason.POLISH)
     if candidates.any():
         cos = residual_cosine(s.lin, be)
         s.status[candidates & (cos <= opts.ctol)] = Status.CONVERGED
@@ -340,7 +340,7 @@ def _lm_result(s: _LMState, game: PotentialGame, opts: LMOptions, cos, wall) -> 
     C = batch_function(game, "agent_costs", opts.threads)(U, P)[0]
     status = demote_nonfinite(s.status, E[:, None], X, C)
     stop = s.stop
-    stop[(status == Status.NONFINITE) & (stop != "nonfinite")] = "nonfinite"
+    stop[(status == Status.NONFINITE) & (stop != StopReason.NONFINITE)] = StopReason.NONFINITE
     B = U.shape[0]
     return SolveResult(
         solver="lm",

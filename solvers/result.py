@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Status", "SolveResult", "fmt_number", "demote_nonfinite"]
+__all__ = ["Status", "StopReason", "stop_reason", "SolveResult", "fmt_number", "demote_nonfinite"]
 
 
 class Status(enum.Enum):
@@ -37,6 +37,63 @@ class Status(enum.Enum):
     def ok(self) -> bool:
         """A usable iterate: ``CONVERGED`` or ``MAX_ITER`` (a ``STALLED`` point is not one)."""
         return self in (Status.CONVERGED, Status.MAX_ITER)
+
+
+class StopReason(str, enum.Enum):
+    """Why a solver stopped (``info["stop"]``), beside its :class:`Status`.
+
+    A ``str``: a member equals, hashes, prints and is written to JSON as its value
+    (``StopReason.FTOL == "ftol"``), so result files hold the plain word. SQP's QP failures
+    are not members: they are the string ``"qp <OSQP status>"``. :func:`stop_reason` turns
+    a word read back from a file into its member.
+    """
+
+    #: LM: the gradient's inf-norm reached ``gtol``.
+    GTOL = "gtol"
+    #: LM: an accepted step lowered the energy by at most ``ftol (1 + E)``.
+    FTOL = "ftol"
+    #: LM: the damping passed ``max_damping`` (no step lowers the energy).
+    MAX_DAMPING = "max_damping"
+    #: LM: exact-Hessian Newton steps after an ``ftol`` / ``max_damping`` stop reached ``gtol``.
+    POLISH = "polish"
+    #: the iteration limit was reached.
+    MAX_ITER = "max_iter"
+    #: NaN or inf in the energy, the residual or the step.
+    NONFINITE = "nonfinite"
+    #: iLQ: ``max |a| <= tol`` at the requested regularization.
+    TOL = "tol"
+    #: iLQ: the linearization at the requested regularization is singular.
+    SINGULAR = "singular"
+    #: iLQ: the tolerance holds only with raised regularization.
+    REGULARIZED_ONLY = "regularized_only"
+    #: iLQ: converged with the kinks blended, and no step passes at the exact kinks.
+    KINK = "kink"
+    #: iLQ, SQP: no step passes the line search (up to iLQ's regularization cap).
+    LINE_SEARCH = "line_search"
+    #: iLQ: on a kink, a policy certified as a feedback Nash equilibrium.
+    KINK_EQUILIBRIUM = "kink_equilibrium"
+    #: SQP: the KKT conditions hold within ``tol`` and ``feas_tol``.
+    KKT = "kkt"
+    #: SQP: the regularization passed its cap without a step that lowers the KKT error.
+    NO_DESCENT = "no_descent"
+    #: SQP: the QP's step is negligible (``step_tol``).
+    STEP_TOL = "step_tol"
+
+    __hash__ = str.__hash__
+    __str__ = str.__str__
+    __format__ = str.__format__
+
+
+def stop_reason(value: Any) -> Any:
+    """``value`` (a stop word, e.g. read from a result file) as its :class:`StopReason`;
+    anything else (``None``, an SQP ``"qp ..."`` string, a word this version does not
+    know) is returned unchanged."""
+    if isinstance(value, str) and not isinstance(value, StopReason):
+        try:
+            return StopReason(value)
+        except ValueError:
+            return value
+    return value
 
 
 def fmt_number(value: Any, spec: str = ".6g") -> str:

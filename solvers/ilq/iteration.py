@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from ..codegen import BufferCall as _Call
-from ..result import SolveResult, Status
+from ..result import SolveResult, Status, StopReason
 from ..stages import from_stages, to_stages
 from . import kinks
 
@@ -61,7 +61,7 @@ class SolveOnce:
         self.failed_width = 0.0
         self.take(self.relinearize(self.Xbar, self.Ubar))
         self.status = Status.MAX_ITER if math.isfinite(self.res) else Status.NONFINITE
-        self.stop = "max_iter" if math.isfinite(self.res) else "nonfinite"
+        self.stop = StopReason.MAX_ITER if math.isfinite(self.res) else StopReason.NONFINITE
         self.hist_E, self.hist_res, self.steps = [self.E], [self.res], []
         self.merits = [self.merit]  # merits (RMS of a) at the current regularization
         self.eps_next = float(opts.step_size)  # first trial step of the next iteration
@@ -124,7 +124,7 @@ class SolveOnce:
                 break
             self._iterate()
         self._unblend()
-        kink_info = self._kink_report() if self.stop == "kink" else None
+        kink_info = self._kink_report() if self.stop is StopReason.KINK else None
         return self._result(kink_info)
 
     def _at_tolerance(self) -> None:
@@ -145,20 +145,20 @@ class SolveOnce:
                 self.merits, self.eps_next = [self.merit], float(opts.step_size)
             return
         if self.mu_run <= self.mu0:  # the tolerance holds at the requested regularization
-            self.status, self.stop = Status.CONVERGED, "tol"
+            self.status, self.stop = Status.CONVERGED, StopReason.TOL
             return
         # judged with the regularization the user asked for, never a raised one
         self.mu_run = self.mu0
         lin = self.linearize(self.Xbar, self.Ubar)
         self.resets += 1
         if not math.isfinite(lin[4]):
-            self.status, self.stop = Status.STALLED, "singular"
+            self.status, self.stop = Status.STALLED, StopReason.SINGULAR
             return
         if lin[4] > opts.tol and self.resets > _MAX_RESETS:
             # the tolerance only holds with raised regularization: not a feedback
             # Nash point of the game that was asked for
             self.take(lin)
-            self.status, self.stop = Status.STALLED, "regularized_only"
+            self.status, self.stop = Status.STALLED, StopReason.REGULARIZED_ONLY
             return
         self.take(lin)
         self.merits = [self.merit]
@@ -221,11 +221,11 @@ class SolveOnce:
             # the one-sided curvatures give different gains (docs/ilq.md)
             self.failed_width = s.kink_width
             self.Xbar, self.Ubar = self.on_kink[0], self.on_kink[1]
-            self.status, self.stop = Status.STALLED, "kink"
+            self.status, self.stop = Status.STALLED, StopReason.KINK
             return None
         # no usable step: more regularization, same trajectory
         if not self.bump():
-            self.status, self.stop = Status.STALLED, "line_search"
+            self.status, self.stop = Status.STALLED, StopReason.LINE_SEARCH
             if self.mu_run > self.mu0:  # report max |a| at the requested regularization
                 self.mu_run = self.mu0
                 lin = self.linearize(self.Xbar, self.Ubar)
@@ -260,7 +260,7 @@ class SolveOnce:
         self.hist_res.append(self.res)
         self.max_mu = max(self.max_mu, _max(self.mu))
         if not math.isfinite(self.res):
-            self.status, self.stop = Status.NONFINITE, "nonfinite"
+            self.status, self.stop = Status.NONFINITE, StopReason.NONFINITE
 
     # ---- after the iteration ---------------------------------------------------------------
     def _unblend(self) -> None:
@@ -305,7 +305,7 @@ class SolveOnce:
             self.Xbar, self.Ubar = eq["X"], eq["U"]
             self.C, self.E, self.PA = eq["C"], eq["E"], eq["PA"]
             self.mu, self.res = eq["mu"], eq["stationarity"]
-            self.status, self.stop = Status.CONVERGED, "kink_equilibrium"
+            self.status, self.stop = Status.CONVERGED, StopReason.KINK_EQUILIBRIUM
 
     def _result(self, kink_info) -> SolveResult:
         """The :class:`solvers.result.SolveResult` at the current trajectory."""

@@ -19,7 +19,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from ..lm import check_options
-from ..result import SolveResult, Status
+from ..result import SolveResult, Status, StopReason
 from ..stages import _stage_index
 from . import riccati
 from .iteration import SolveOnce
@@ -30,7 +30,8 @@ from .rollout import build_rollout
 
 __all__ = ["ILQSolver", "get_solver", "solve_ilq"]
 
-_RESTART_STOPS = ("line_search", "regularized_only")  # stalled solves that restart
+# stalled solves that restart
+_RESTART_STOPS = (StopReason.LINE_SEARCH, StopReason.REGULARIZED_ONLY)
 
 
 class ILQSolver:

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import osqp
 
-from ..result import Status
+from ..result import Status, StopReason
 from .options import SQPOptions
 from .qp import StagedQP
 
@@ -51,7 +51,7 @@ class SQPRun:
         self.alphas: list = []
         self.qp_iters: list = []
         self.polish_hist: list = []
-        self.status, self.stop, self.qp_status = Status.MAX_ITER, "max_iter", ""
+        self.status, self.stop, self.qp_status = Status.MAX_ITER, StopReason.MAX_ITER, ""
         self.kkt = dict(stationarity=math.inf, violation=math.inf, complementarity=math.inf)
         self.y = np.zeros(qp.n_c)
         self.it = 0
@@ -65,7 +65,7 @@ class SQPRun:
             E = float(E[0])
             self.hist.append(E)
             if not (math.isfinite(E) and np.isfinite(x).all() and np.isfinite(q).all()):
-                self.status, self.stop = Status.NONFINITE, "nonfinite"
+                self.status, self.stop = Status.NONFINITE, StopReason.NONFINITE
                 break
             lo, hi = s._bounds(self.u, x, d)
             v = self._solve_qp(Px, q, Ax, lo, hi)
@@ -139,7 +139,7 @@ class SQPRun:
             and kkt["complementarity"] <= o.tol
             and viol_inf <= o.feas_tol
         ):
-            self.status, self.stop = Status.CONVERGED, "kkt"
+            self.status, self.stop = Status.CONVERGED, StopReason.KKT
             return viol1, None
         return viol1, max(kkt["stationarity"], kkt["complementarity"], viol_inf)
 
@@ -150,9 +150,9 @@ class SQPRun:
         self.it += 1
         if self.mu > _MU_MAX or self.it >= self.o.max_iter:
             self.status, self.stop = (
-                (Status.STALLED, "no_descent")
+                (Status.STALLED, StopReason.NO_DESCENT)
                 if self.mu > _MU_MAX
-                else (Status.MAX_ITER, "max_iter")
+                else (Status.MAX_ITER, StopReason.MAX_ITER)
             )
             return True
         return False
@@ -175,7 +175,7 @@ class SQPRun:
         vPv = float(2.0 * v @ (Pm @ v) - Pm.diagonal() @ (v * v))
         self.it += 1
         if np.max(np.abs(du), initial=0.0) <= o.step_tol * (1 + np.max(np.abs(u), initial=0.0)):
-            self.status, self.stop = Status.STALLED, "step_tol"
+            self.status, self.stop = Status.STALLED, StopReason.STEP_TOL
             return True
         if -dphi <= _FINE * (1 + abs(phi)):
             # the predicted decrease drowns in the rounding of E (or nearly): the line
@@ -191,7 +191,7 @@ class SQPRun:
             return False
         found = self._line_search(du, phi, dphi)
         if found is None:
-            self.status, self.stop = Status.STALLED, "line_search"
+            self.status, self.stop = Status.STALLED, StopReason.LINE_SEARCH
             return True
         alpha, phi_t, u_try = found
         # the QP model's predicted decrease against the actual one: adapt mu
