@@ -12,6 +12,7 @@ __all__ = [
     "check_number",
     "check_bool",
     "check_size",
+    "from_mapping",
     "short_repr",
 ]
 
@@ -124,3 +125,20 @@ def check_size(field: str, value, limit: int | float, what: str = "", *, lo: int
         lim = f"{limit:,}" if isinstance(limit, int) else f"{limit:g}"
         raise SpecError(field, f"{v:,} is over the limit of {lim}{why}")
     return v
+
+
+def from_mapping(cls, values, where: str, what: str = "field"):
+    """``cls(**values)`` for a dataclass ``cls`` after checking that ``values`` is a mapping
+    whose keys are all fields of ``cls``; otherwise :class:`SpecError` at ``where`` naming the
+    unknown keys and the allowed ones (``what`` is how the message calls a key, e.g.
+    ``"recipe field"``). The fields' own checks (``__post_init__``) run as usual."""
+    from collections.abc import Mapping
+    from dataclasses import fields
+
+    if not isinstance(values, Mapping):
+        raise SpecError(where, f"expected a mapping of {what}s, got {type(values).__name__}")
+    names = {f.name for f in fields(cls) if f.init}
+    unknown = sorted(set(values) - names, key=str)
+    if unknown:
+        raise SpecError(where, f"unknown {what}(s) {unknown}; allowed: {sorted(names)}")
+    return cls(**values)

@@ -122,7 +122,7 @@ from epo_casadi import (
     TurnRate,
     Velocity,
 )
-from epo_casadi.errors import SpecError, check_number, check_size
+from epo_casadi.errors import SpecError, check_number, check_size, from_mapping
 
 from .dataset import SPLITS, FieldSpec, Scenario
 
@@ -283,17 +283,8 @@ class LeftTurnRecipe:
 
     @classmethod
     def from_dict(cls, d: dict) -> LeftTurnRecipe:
-        if not isinstance(d, dict):
-            raise SpecError(
-                "left-turn", f"expected a mapping of recipe fields, got {type(d).__name__}"
-            )
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise SpecError(
-                "left-turn", f"unknown recipe field(s) {unknown}; allowed: {sorted(names)}"
-            )
-        return cls(**d)
+        """The recipe of a manifest's or ``--set``'s fields (unknown fields refused)."""
+        return from_mapping(cls, d, "left-turn", "recipe field")
 
 
 # --------------------------------------------------------------------------------------

@@ -98,7 +98,7 @@ Fields of one sample (``N = 2`` agents, ``nx = 4``, ``nu = 2``, ``H = 18``, ``M 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
 
@@ -117,7 +117,7 @@ from epo_casadi import (
     Velocity,
     VelocityBound,
 )
-from epo_casadi.errors import SpecError, check_number, check_size
+from epo_casadi.errors import SpecError, check_number, check_size, from_mapping
 
 from .dataset import FieldSpec, Scenario
 
@@ -440,13 +440,8 @@ class RPIRecipe:
 
     @classmethod
     def from_dict(cls, d: dict) -> RPIRecipe:
-        if not isinstance(d, dict):
-            raise SpecError("rpi", f"expected a mapping of recipe fields, got {type(d).__name__}")
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise SpecError("rpi", f"unknown recipe field(s) {unknown}; allowed: {sorted(names)}")
-        return cls(**d)
+        """The recipe of a manifest's or ``--set``'s fields (unknown fields refused)."""
+        return from_mapping(cls, d, "rpi", "recipe field")
 
 
 @dataclass(frozen=True)

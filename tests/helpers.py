@@ -191,3 +191,27 @@ def proc_alive(pid: int) -> bool:
     except OSError:
         return False
     return stat[stat.rindex(")") + 2] != "Z"
+
+
+def process_family(pid: int) -> set[int]:
+    """The live children and grandchildren of ``pid`` (a pool's workers and their helpers)."""
+    family = set(proc_children(pid))
+    for c in list(family):
+        family |= set(proc_children(c))
+    return family
+
+
+def survivors(family, wait: float = 10.0) -> list[int]:
+    """The processes of ``family`` still alive after up to ``wait`` seconds; each is then
+    killed (SIGKILL), so a failing test leaves none behind."""
+    import os
+    import signal
+    import time
+
+    t0 = time.monotonic()
+    while any(proc_alive(c) for c in family) and time.monotonic() - t0 < wait:
+        time.sleep(0.05)
+    alive = [c for c in family if proc_alive(c)]
+    for c in alive:
+        os.kill(c, signal.SIGKILL)
+    return alive

@@ -166,6 +166,16 @@ def test_output_folders_through_files_are_refused(tmp_path):
 
 
 def test_usable_cores_is_the_affinity_mask():
+    """Not the machine's core count: a process pinned to one core may use one."""
     import os
+    import subprocess
+    import sys
 
     assert usable_cores() == len(os.sched_getaffinity(0))
+    code = (
+        "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
+        "from scenarios.files import usable_cores; print(usable_cores(), os.cpu_count())"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    pinned, machine = map(int, r.stdout.split())
+    assert pinned == 1 and machine >= 1

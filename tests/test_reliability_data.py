@@ -30,7 +30,7 @@ from learning.models import ModelConfig
 from learning.train import TrainConfig, load_model, train
 from scenarios import dataset as ds
 from scenarios.dataset import DatasetError
-from tests.helpers import cli, one_error_line, proc_alive, proc_children
+from tests.helpers import cli, one_error_line, proc_children, process_family, survivors
 from tests.test_dataset import ToyScenario
 from tests.test_models import TINY, synthetic_dataset
 
@@ -230,9 +230,7 @@ def _kill_when_a_shard_is_done(
                         break
             time.sleep(0.05)
         assert p.poll() is None, "the generation ended before it could be killed"
-        family = set(proc_children(p.pid))
-        for c in list(family):
-            family |= set(proc_children(c))
+        family = process_family(p.pid)
         assert len(family) >= 2
         p.send_signal(sig)
         p.wait(60)
@@ -263,12 +261,7 @@ def test_killed_generate_leaves_no_processes_and_resumes(tmp_path):
             family = _kill_when_a_shard_is_done(p, out, sig, more_than=kept)
             log.seek(0)
             text = log.read()
-        t0 = time.monotonic()
-        while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
-            time.sleep(0.05)
-        alive = [c for c in family if proc_alive(c)]
-        for c in alive:  # do not leave them behind when the test fails
-            os.kill(c, signal.SIGKILL)
+        alive = survivors(family)
         assert not alive, f"processes outlived the {sig.name} generation: {alive}"
         if sig == signal.SIGTERM:
             assert p.returncode == 130 and "Traceback" not in text, (p.returncode, text)

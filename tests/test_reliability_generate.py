@@ -29,7 +29,7 @@ from scenarios.files import output_lock
 from scenarios.highway import HighwayOptions
 from scenarios.left_turn import LeftTurnScenario
 from scenarios.rpi import RPIScenario
-from tests.helpers import cli, one_error_line, proc_alive, proc_children
+from tests.helpers import cli, one_error_line, process_family, survivors
 
 ROOT = Path(__file__).resolve().parents[1]
 # highway-raw: 2 s recorded at 10 Hz after 4 s of warm-up, on one map
@@ -354,9 +354,7 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
                 break
             time.sleep(0.02)
         assert p.poll() is None, "the run ended before it could be stopped"
-        family = set(proc_children(p.pid))
-        for c in list(family):
-            family |= set(proc_children(c))
+        family = process_family(p.pid)
         p.send_signal(signal.SIGTERM)
         _, err = p.communicate(timeout=60)
     finally:
@@ -366,12 +364,7 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
         for pipe in (p.stdout, p.stderr):  # closed also when the test fails
             if pipe is not None:
                 pipe.close()
-    t0 = time.monotonic()
-    while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
-        time.sleep(0.05)
-    alive = [c for c in family if proc_alive(c)]
-    for c in alive:  # do not leave them behind when the test fails
-        os.kill(c, signal.SIGKILL)
+    alive = survivors(family)
     assert not alive, f"processes outlived the stopped run: {alive}"
     assert p.returncode == 130, (p.returncode, err)
     assert "Traceback" not in err and "leaked" not in err and "semaphore" not in err, err

@@ -33,7 +33,7 @@ from solvers.control.plan import ConstantVelocityPlanner, GameOracle, PlannerOpt
 from solvers.control.track import MPCOptions, MPCTracker, PIDTracker
 from solvers.control.types import Observation, Plan
 from solvers.control.vehicle import VehicleModel
-from tests.helpers import cli, one_error_line, proc_alive, proc_children
+from tests.helpers import cli, one_error_line, proc_children, process_family, survivors
 from tests.test_plan import TwoCarScene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -481,9 +481,7 @@ def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
                     break
                 time.sleep(0.05)
             assert p.poll() is None, "the run ended before it could be stopped"
-            family = set(proc_children(p.pid))
-            for c in list(family):
-                family |= set(proc_children(c))
+            family = process_family(p.pid)
             p.send_signal(signal.SIGTERM)
             p.wait(60)
         finally:
@@ -492,12 +490,7 @@ def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
                 p.wait()
         log.seek(0)
         text = log.read()
-    t0 = time.monotonic()
-    while any(proc_alive(c) for c in family) and time.monotonic() - t0 < 10:
-        time.sleep(0.05)
-    alive = [c for c in family if proc_alive(c)]
-    for c in alive:
-        os.kill(c, signal.SIGKILL)
+    alive = survivors(family)
     assert not alive, f"processes outlived the stopped run: {alive}"
     assert p.returncode == 130, (p.returncode, text)
     assert "Traceback" not in text and "leaked" not in text, text

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path as FilePath
 
-from epo_casadi.errors import SpecError, check_bool, check_number, check_size
+from epo_casadi.errors import SpecError, check_bool, check_number, check_size, from_mapping
 
 from .lanelet import find_map
 from .recording import _recording_meta, find_recordings
@@ -113,13 +113,8 @@ class ExidRecipe:
 
     @classmethod
     def from_dict(cls, d: dict) -> ExidRecipe:
-        if not isinstance(d, dict):
-            raise SpecError("exid", f"expected a mapping of recipe fields, got {type(d).__name__}")
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise SpecError("exid", f"unknown recipe field(s) {unknown}; allowed: {sorted(names)}")
-        return cls(**d)
+        """The recipe of a manifest's or ``--set``'s fields (unknown fields refused)."""
+        return from_mapping(cls, d, "exid", "recipe field")
 
 
 def _id(field: str, x) -> int:
