@@ -164,16 +164,25 @@ def _exid_game(recipe: dict) -> PotentialGame:
     return ExidScenario(ExidRecipe.from_dict(recipe)).game
 
 
-GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame]] = {
+#: (or its ``"module:function"`` path, imported on first use: the readers of recorded data)
+GAME_BUILDERS: dict[str, Callable[[dict], PotentialGame] | str] = {
     "rpi": _rpi_game,
     "left-turn": _left_turn_game,
     "exid": _exid_game,
+    "eth-ucy": "scenarios.real.eth_ucy:game_from_recipe",
+    "vci": "scenarios.real.vci:game_from_recipe",
+    "waymo": "scenarios.real.waymo:game_from_recipe",
 }
 
 
 @functools.lru_cache(maxsize=8)
 def _cached_game(scenario: str, recipe_json: str) -> PotentialGame:
-    return GAME_BUILDERS[scenario](json.loads(recipe_json))
+    build = GAME_BUILDERS[scenario]
+    if isinstance(build, str):
+        from epo_casadi.registry import load_class
+
+        build = GAME_BUILDERS[scenario] = load_class(build, f"{MANIFEST}.scenario")
+    return build(json.loads(recipe_json))
 
 
 def dataset_game(directory_or_manifest: str | os.PathLike | Mapping) -> PotentialGame:
