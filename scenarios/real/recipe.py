@@ -23,7 +23,9 @@ class SceneRecipe:
     modes: int = 20  #: M future slots (slot 0 the recording, the rest copies)
     dt: float = 0.4  #: step (s)
     stride: int = 1  #: current steps of one focal agent's scenes are this many steps apart
-    max_distance: float = 1e9  #: others farther than this at their closest approach are left out (m)
+    max_distance: float = (
+        1e9  #: others farther than this at their closest approach are left out (m)
+    )
     radius: float = 0.3  #: default collision radius (m)
     collision_every: int = 1  #: the collision term every this many steps
     w_goal: float = 1.0  #: default weights of the game (the network predicts them)

@@ -285,7 +285,9 @@ def scene_schema(agents: int, history: int, horizon: int, modes: int) -> dict[st
     and T future steps, M future slots of which slot 0 is the recording)."""
     N, H1, T, M = int(agents), int(history) + 1, int(horizon), int(modes)
     return {
-        "history": FieldSpec((H1, N, 4), "float32", "observed states (x, y, v, theta), scene frame"),
+        "history": FieldSpec(
+            (H1, N, 4), "float32", "observed states (x, y, v, theta), scene frame"
+        ),
         "history_valid": FieldSpec((H1,), "bool", "always True (complete windows only)"),
         "future": FieldSpec((M, N, T, 4), "float32", "recorded future in slot 0, copies after"),
         "mode_valid": FieldSpec((M,), "bool", "True only for the recorded slot"),
@@ -299,7 +301,9 @@ def scene_schema(agents: int, history: int, horizon: int, modes: int) -> dict[st
         "frame": FieldSpec((), "int64", "current frame in the recording"),
         "origin": FieldSpec((2,), "float64", "scene origin in the recording's frame (m)"),
         "min_distance": FieldSpec(
-            (), "float32", "closest distance of two recorded agents over the window (m; inf: one agent)"
+            (),
+            "float32",
+            "closest distance of two recorded agents over the window (m; inf: one agent)",
         ),
     }
 
