@@ -109,20 +109,13 @@ from functools import cached_property
 import numpy as np
 
 from epo_casadi import (
-    Acceleration,
     AgentSpec,
     Collision,
     GameSpec,
-    Goal,
-    Jerk,
-    Path,
     PotentialGame,
-    ReferenceVelocity,
-    TurnAcceleration,
-    TurnRate,
-    Velocity,
 )
 from epo_casadi.errors import SpecError, check_number, check_size, from_mapping
+from epo_casadi.presets import driving_features
 
 from .dataset import SPLITS, FieldSpec, Scenario
 
@@ -626,16 +619,7 @@ class LeftTurnScenario(Scenario):
         r = self.recipe
         out = []
         for name in AGENTS:
-            feats = [
-                Goal(weight=r.w_goal),
-                Path(weight=r.w_lane, points=r.lane_points, label="lane"),
-                ReferenceVelocity(weight=r.w_vref, label="vref"),
-                Velocity(weight=r.w_vel),
-                Acceleration(weight=r.w_acc),
-                Jerk(weight=r.w_jerk),
-                TurnRate(weight=r.w_turn),
-                TurnAcceleration(weight=r.w_turnacc),
-            ]
+            feats = driving_features(r, lane_points=r.lane_points)
             out.append(AgentSpec(name, "unicycle", feats, radius=r.radius))
         return out
 

@@ -11,20 +11,13 @@ from pathlib import Path as FilePath
 import numpy as np
 
 from epo_casadi import (
-    Acceleration,
     AgentSpec,
     Collision,
     GameSpec,
-    Goal,
-    Jerk,
-    Path,
     PotentialGame,
-    ReferenceVelocity,
-    TurnAcceleration,
-    TurnRate,
-    Velocity,
 )
 from epo_casadi.errors import SpecError, check_size
+from epo_casadi.presets import driving_features
 
 from ..dataset import SPLITS, DatasetError, FieldSpec, Scenario
 from ..maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
@@ -172,16 +165,7 @@ class ExidScenario(Scenario):
         r = self.recipe
         out = []
         for i in range(r.agents):
-            feats = [
-                Goal(weight=r.w_goal),
-                Path(weight=r.w_lane, points=r.lane_points, label="lane"),
-                ReferenceVelocity(weight=r.w_vref, label="vref"),
-                Velocity(weight=r.w_vel),
-                Acceleration(weight=r.w_acc),
-                Jerk(weight=r.w_jerk),
-                TurnRate(weight=r.w_turn),
-                TurnAcceleration(weight=r.w_turnacc),
-            ]
+            feats = driving_features(r, lane_points=r.lane_points)
             out.append(
                 AgentSpec(
                     f"v{i}", "unicycle", feats, radius=r.radius, radius_param=r.radius_per_agent

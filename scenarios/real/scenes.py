@@ -48,18 +48,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epo_casadi import (
-    Acceleration,
-    AgentSpec,
-    Collision,
-    GameSpec,
-    Goal,
-    Jerk,
-    TurnAcceleration,
-    TurnRate,
-    Velocity,
-)
+from epo_casadi import AgentSpec, Collision, GameSpec
 from epo_casadi.errors import SpecError
+from epo_casadi.presets import driving_features
 
 from ..dataset import FieldSpec
 
@@ -73,7 +64,6 @@ __all__ = [
     "scene_schema",
     "stack_scenes",
     "crowd_game_spec",
-    "CROWD_FEATURES",
 ]
 
 
@@ -349,18 +339,6 @@ def stack_scenes(
     return {k: np.asarray(out[k]).astype(fs.dtype) for k, fs in schema.items()}
 
 
-#: the crowd game's own features, in order (App. F.3's Waymo set: goal, vel, acc, jerk,
-#: turn rate, turn acceleration) and the recipe weight of each
-CROWD_FEATURES = (
-    ("goal", Goal, "w_goal"),
-    ("vel", Velocity, "w_vel"),
-    ("acc", Acceleration, "w_acc"),
-    ("jerk", Jerk, "w_jerk"),
-    ("turn", TurnRate, "w_turn"),
-    ("turnacc", TurnAcceleration, "w_turnacc"),
-)
-
-
 def crowd_game_spec(recipe, names: Sequence[str] | None = None) -> GameSpec:
     """The game of recorded scenes: ``recipe.agents`` unicycles with the App. F.3 Waymo
     features (goal, vel, acc, jerk, turn rate, turn acceleration) weighted by the recipe's
@@ -373,7 +351,7 @@ def crowd_game_spec(recipe, names: Sequence[str] | None = None) -> GameSpec:
         AgentSpec(
             name,
             "unicycle",
-            [cls(weight=getattr(recipe, w)) for _, cls, w in CROWD_FEATURES],
+            driving_features(recipe),
             radius=recipe.radius,
             radius_param=True,
         )
