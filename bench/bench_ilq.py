@@ -11,7 +11,7 @@ acceleration and turn rate, pairwise collision at every step; unicycles, dt = 0.
 
 * ``rpi``: robot from (-3, 0) to (3, 0), pedestrian from the circle of radius 3 at 100 deg
   to the opposite side (+10 deg jitter), speeds 1 m/s, bounds and weights of the RPI recipe
-  (``scenarios/rpi.py`` defaults), collision weight 17.5 (middle of U(5, 30));
+  (``scenarios/rpi/recipe.py`` defaults), collision weight 17.5 (middle of U(5, 30));
 * ``circle-N``: ``N`` agents on a circle of radius 3 crossing to the opposite side, goals
   shifted 0.3 m sideways (``tests/helpers.crossing_spec``), collision weight 10.
 

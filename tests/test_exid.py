@@ -1,4 +1,4 @@
-"""exiD layout (scenarios/exid.py) on data of the generator (scenarios/highway.py): the reader
+"""exiD layout (scenarios/exid.py) on data of the generator (scenarios/highway/): the reader
 against pandas and highway-env, UTM against the meridian arc, the extraction (frames, dt,
 lane-change filter, held-out map, goal candidates on lanes), malformed recordings, the
 dataset files, and one training step of ours and SC."""

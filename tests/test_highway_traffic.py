@@ -1,4 +1,4 @@
-"""The generator's traffic (scenarios/highway.py) on hand-placed highway-env vehicles: queues
+"""The generator's traffic (scenarios/highway/) on hand-placed highway-env vehicles: queues
 keep the jam distance bumper to bumper behind cars and trucks, braking ends at standstill
 (no reversing), and a car inside a truck's box is a crash, whatever the sizes."""
 

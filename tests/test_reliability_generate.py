@@ -127,7 +127,7 @@ def test_highway_raw_second_writer_is_refused_for_the_whole_run(tmp_path, capsys
         seen.append((rc2, err2))
         return real(*u)
 
-    monkeypatch.setattr(highway, "_record_files", record)
+    monkeypatch.setattr(highway.raw_set, "_record_files", record)
     rc, _, err = cli(capsys, "generate", "highway-raw", "--out", d, "--recordings", "1", *HW)
     assert rc == 0, err
     assert len(seen) == 1

@@ -228,7 +228,7 @@ def _bomb(levels: int, width: int = 10) -> str:
     "old, key", [("lm: {steps: 200}", "solver.lm.steps"), ("horizon: 30", "horizon")]
 )
 def test_alias_bomb_is_refused_fast(old, key, tmp_path, monkeypatch):
-    monkeypatch.setattr(gamefile, "MAX_VALUES", 500)
+    monkeypatch.setattr(gamefile.checks, "MAX_VALUES", 500)
     text = example_path("crossing2").read_text()
     new = old.replace("200", _bomb(4)) if "steps" in old else f"horizon: {_bomb(4)}"
     path = tmp_path / "bomb.yaml"
@@ -237,7 +237,7 @@ def test_alias_bomb_is_refused_fast(old, key, tmp_path, monkeypatch):
         load_game(path)
     assert e.value.field.startswith(key)  # names the entry: solver.lm.steps[3]
     # just under the limit: the count is the expanded one (1 + 10 + 10^2 + 10^3 ...)
-    monkeypatch.setattr(gamefile, "MAX_VALUES", 10**6)
+    monkeypatch.setattr(gamefile.checks, "MAX_VALUES", 10**6)
     with pytest.raises(SpecError) as e:
         load_game(path)  # not a bomb any more, but still not an integer
     assert e.value.field == key and len(str(e.value)) < 300  # no repr of the structure
