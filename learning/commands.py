@@ -113,6 +113,13 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     show_default=True,
     help="torch threads (1 is fastest for these small networks on a shared machine).",
 )
+@click.option(
+    "--preset",
+    default=None,
+    metavar="NAME",
+    help="Settings of a paper experiment (learning.presets), e.g. waymo: batch 32, lr 1e-4, "
+    "loss weights 1/1/1, M = 6, regressed goals; options given here override them.",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def train_cmd(
     kind,
@@ -128,16 +135,35 @@ def train_cmd(
     checkpoint_steps,
     threads,
     progress,
+    preset,
 ):
     """Train a model on the train split of a dataset; validate on val after every epoch.
 
     One training at a time per --out folder (a second is refused while the first runs);
     --out must not be a dataset folder.
     """
+    from .presets import get_preset
     from .train import TrainConfig, check_run_dir, train
 
+    p = None if preset is None else get_preset(preset)
     check_run_dir(out, data, field="--out")
     over = _parse_set(overrides)
+    loss = None
+    if p is not None:  # the preset's values where no option was given
+        from click.core import ParameterSource
+
+        from .losses import LossWeights
+
+        ctx = click.get_current_context()
+        defaults = (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
+        given = {n for n in ("batch_size", "lr") if ctx.get_parameter_source(n) not in defaults}
+        batch_size = batch_size if "batch_size" in given else p.train.get("batch_size", batch_size)
+        lr = lr if "lr" in given else p.train.get("lr", lr)
+        pm = p.model_fields(kind)
+        preset_modes = pm.pop("modes", None)
+        modes = preset_modes if modes is None and "modes" not in over else modes
+        over = {**pm, **over}
+        loss = LossWeights(**p.loss)
     if lm_steps is not None:
         over["lm_steps"] = lm_steps
     model = _model_config(kind, modes, data, over)
@@ -147,6 +173,7 @@ def train_cmd(
         batch_size=batch_size,
         lr=lr,
         seed=seed,
+        loss=loss,
         checkpoint_steps=checkpoint_steps,
     )
     from scenarios.dataset import sigterm_as_interrupt

@@ -142,8 +142,29 @@ def make_world(root: Path) -> dict[str, Path]:
     args = ["generate", "highway-raw", "--out", exid_raw, "--recordings", "1", "--duration", "24"]
     args += ["--no-progress", "--set", "warmup=20", "--set", "frame_rate=10"]
     assert main([str(a) for a in args]) == 0
+    vci_raw = root / "vci_raw"  # one clip of the CITR layout: a cart and a pedestrian
+    vci_raw.mkdir()
+    rows = [f"1,{f},ped,{0.1 * f},1.0,3.0,0.0" for f in range(60)]
+    (vci_raw / "c_01_traj_ped_filtered.csv").write_text(
+        "\n".join(["id,frame,label,x_est,y_est,vx_est,vy_est", *rows]) + "\n"
+    )
+    rows = [f"1,{f},veh,{0.05 * f},0.0,0.0,1.5" for f in range(60)]
+    (vci_raw / "c_01_traj_veh_filtered.csv").write_text(
+        "\n".join(["id,frame,label,x_est,y_est,psi_est,vel_est", *rows]) + "\n"
+    )
+    eth_ucy_raw = root / "eth_ucy_raw"  # two small ETH/UCY files: a test and a training scene
+    eth_ucy_raw.mkdir()
+    eth_rows = "".join(f"{10 * k}\t{p}\t{0.4 * k}\t{2.0 * p}\n" for k in range(30) for p in (1, 2))
+    for name in ("biwi_eth.txt", "biwi_hotel.txt"):
+        (eth_ucy_raw / name).write_text(eth_rows)
+    from tests.test_real_waymo import write_tiny  # two small Waymo scenarios, one pair each
+
+    waymo_raw = write_tiny(root / "waymo_raw" / "t.tfrecord")
     return {
         "exid_raw": exid_raw,
+        "eth_ucy_raw": eth_ucy_raw,
+        "waymo_raw": waymo_raw,
+        "vci_raw": vci_raw,
         "root": root,
         "data": data,
         "run": run,
@@ -185,6 +206,13 @@ BASES: dict[str, dict] = {
         "out": "dir",
     },
     "generate exid": {"args": ["--raw", "{IN}", "--out", "{OUT}"], "in": "exid", "out": "dir"},
+    "generate eth-ucy": {
+        "args": ["--raw", "{IN}", "--out", "{OUT}"],
+        "in": "eth_ucy",
+        "out": "dir",
+    },
+    "generate vci": {"args": ["--raw", "{IN}", "--out", "{OUT}"], "in": "vci", "out": "dir"},
+    "generate waymo": {"args": ["--raw", "{IN}", "--out", "{OUT}"], "in": "waymo", "out": "dir"},
     "generate rpi": {"args": ["--samples", "4", "--out", "{OUT}"], "out": "dir"},
     "generate left-turn": {
         "args": ["--episodes-per-geometry", "1", "--out", "{OUT}"],
@@ -201,10 +229,16 @@ IN_CASES = {
     "data": ("missing", "file", "empty_dir", "garbage_dir", "garbage", "dangling", "fifo_dir"),
 }
 IN_CASES["exid"] = IN_CASES["data"]
+IN_CASES["eth_ucy"] = IN_CASES["data"]
+IN_CASES["vci"] = IN_CASES["data"]
+IN_CASES["waymo"] = IN_CASES["file"]
 
 
 def _fill(base: dict, world: dict, tmp_path: Path, IN=None, OUT=None) -> list[str]:
     good_in = {"file": world["game"], "data": world["data"], "exid": world["exid_raw"]}
+    good_in["eth_ucy"] = world["eth_ucy_raw"]
+    good_in["vci"] = world["vci_raw"]
+    good_in["waymo"] = world["waymo_raw"]
     good_in = good_in.get(base.get("in"))
     out = OUT if OUT is not None else tmp_path / "out"
     subs = {"{IN}": IN if IN is not None else good_in, "{OUT}": out, "{RUN}": world["run"]}

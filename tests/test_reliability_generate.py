@@ -24,7 +24,7 @@ import pytest
 
 from epo_casadi.errors import SpecError
 from scenarios import highway
-from scenarios.commands import generate as gen
+from scenarios.commands import dataset_options as gen
 from scenarios.files import output_lock
 from scenarios.highway import HighwayOptions
 from scenarios.left_turn import LeftTurnScenario
@@ -266,7 +266,7 @@ def test_workers_are_capped_at_the_usable_cores(tmp_path, capsys, monkeypatch):
     """Class closed: --workers 8 on 2 cores ran 8 processes (latencies three times longer)."""
     import scenarios.dataset as ds
 
-    monkeypatch.setattr(gen, "_cores", lambda: 1)
+    monkeypatch.setattr(gen, "cores", lambda: 1)
     asked = {}
 
     def fake_raw(out, opts, seed=0, progress=False, workers=1):

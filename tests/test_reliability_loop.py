@@ -325,7 +325,7 @@ def test_a_run_where_every_episode_errored_exits_1(tmp_path, capsys, monkeypatch
 def test_workers_are_capped_to_the_usable_cores(tmp_path, capsys, monkeypatch):
     """Class closed: ``--workers 8`` on 2 cores started 8 processes (latencies inflated
     threefold). It is lowered to the usable cores with one warning line."""
-    import scenarios.commands.generate as generate
+    import scenarios.commands.dataset_options as generate
 
     seen = {}
 
@@ -333,7 +333,7 @@ def test_workers_are_capped_to_the_usable_cores(tmp_path, capsys, monkeypatch):
         seen.update(kw)
         raise SpecError("stop", "here")
 
-    monkeypatch.setattr(generate, "_cores", lambda: 2)
+    monkeypatch.setattr(generate, "cores", lambda: 2)
     monkeypatch.setattr(closed_loop, "run_episodes", fake_run)
     with warnings.catch_warnings():
         warnings.simplefilter("always")  # the test suite turns warnings into errors

@@ -11,160 +11,28 @@ option's help and in the recipe classes).
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import click
 
 from epo_casadi.errors import SpecError, check_size
-from epo_casadi.settings import parse_settings
-from scenarios.files import usable_cores
 
-
-def _cores() -> int:
-    return usable_cores()
-
-
-def capped_workers(workers: int | None, option: str = "--workers") -> int:
-    """``workers`` (default: the usable cores), lowered to the usable cores with a warning:
-    more worker processes than cores only make every unit slower."""
-    cores = _cores()
-    if workers is None:
-        return cores
-    if workers > cores:
-        warnings.warn(
-            f"{option} {workers} is more than the {cores} usable core(s); using {cores}",
-            stacklevel=2,
-        )
-        return cores
-    return workers
-
-
-def _exclusive(kw: dict, key: str, option: str, value) -> None:
-    """Put ``value`` of ``option`` into the overrides ``kw`` under ``key`` (when given);
-    the same field given by ``--set`` too is refused (one of them would be ignored)."""
-    if value is None:
-        return
-    if key in kw:
-        raise SpecError(f"--set {key}", f"has an option of its own, {option}; give it there")
-    kw[key] = value
-
-
-def _parse_set(items: tuple[str, ...]) -> dict:
-    """``KEY=VALUE`` recipe overrides, read by :func:`epo_casadi.settings.parse_settings`."""
-    return parse_settings(items, "--set")
+from .dataset_options import (
+    capped_workers,
+    dataset_options,
+    exclusive,
+    make_recipe,
+    parse_set,
+    run_dataset,
+)
+from .generate_eth_ucy import eth_ucy
+from .generate_vci import vci
+from .generate_waymo import waymo
 
 
 @click.group("generate")
 def generate():
     """Generate a dataset (sharded HDF5 files + manifest.json, resumable)."""
-
-
-def _apply(options):
-    def decorate(f):
-        for opt in reversed(options):
-            f = opt(f)
-        return f
-
-    return decorate
-
-
-def engine_options(seed_help: str = "Seed of the whole dataset."):
-    """Workers, seed, engine, scheduler and progress: the options of every command that runs
-    work units on the local-process or Dask engine (generators, ``epo simulate``)."""
-    return _apply(
-        [
-            click.option(
-                "--workers",
-                type=click.IntRange(min=1),
-                default=None,
-                help="Worker processes (default: usable cores).",
-            ),
-            click.option(
-                "--seed", type=click.IntRange(min=0), default=0, show_default=True, help=seed_help
-            ),
-            click.option(
-                "--engine",
-                type=click.Choice(["local", "dask"]),
-                default="local",
-                show_default=True,
-                help="local: process pool; dask: dask.distributed.",
-            ),
-            click.option(
-                "--scheduler",
-                default=None,
-                help="dask scheduler address (engine dask); default: a new LocalCluster of --workers processes.",
-            ),
-            click.option(
-                "--progress/--no-progress",
-                default=True,
-                show_default=True,
-                help="tqdm progress bar.",
-            ),
-        ]
-    )
-
-
-def _dataset_options(set_help: str):
-    """The options every dataset generator shares (one definition, so the generators
-    cannot drift apart): output, the engine options, recipe overrides."""
-    return _apply(
-        [
-            click.option(
-                "--out",
-                "out",
-                required=True,
-                type=click.Path(path_type=Path),
-                help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
-            ),
-            engine_options(),
-            click.option(
-                "--scheduler-timeout",
-                type=click.FloatRange(min=0, min_open=True, max=3600),
-                default=10.0,
-                show_default=True,
-                help="Seconds to wait for the --scheduler before giving up with an error.",
-            ),
-            click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=set_help),
-        ]
-    )
-
-
-def _recipe(make, overrides: dict):
-    """``make(**overrides)``; a value of the wrong type inside the recipe names ``--set``."""
-    try:
-        return make(**overrides)
-    except TypeError as e:
-        raise SpecError("--set", str(e)) from None
-
-
-def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_timeout, progress):
-    """Generate ``scenario`` into ``out`` (resumable; SIGTERM stops like Ctrl-C) and report."""
-    from scenarios.dataset import check_output_dir, sigterm_as_interrupt
-    from scenarios.dataset import generate as run
-
-    if scheduler is not None and engine != "dask":
-        raise click.BadParameter("needs --engine dask", param_hint="'--scheduler'")
-    check_output_dir(out)
-    # local processes (a pool or a new LocalCluster); a running scheduler has its own workers
-    workers = capped_workers(workers) if scheduler is None else (workers or _cores())
-    with sigterm_as_interrupt():
-        rep = run(
-            scenario,
-            out,
-            seed=seed,
-            workers=workers,
-            engine=engine,
-            address=scheduler,
-            progress=progress,
-            scheduler_timeout=scheduler_timeout,
-        )
-    c = rep.counts
-    click.echo(
-        f"{out}: train {c['train']}, val {c['val']}, test {c['test']} samples; "
-        f"{len(rep.shards_written)} shard(s) written, {len(rep.shards_kept)} kept; "
-        f"{rep.samples_written} samples in {rep.seconds:.1f} s ({rep.samples_per_second:.2f} samples/s)"
-    )
 
 
 @generate.command("rpi", short_help="Robot-pedestrian interaction dataset (paper App. E.1).")
@@ -181,7 +49,7 @@ def _run_dataset(scenario, out, workers, seed, engine, scheduler, scheduler_time
     default=None,
     help="Multimodal game solver (default: the recipe's, ilq).",
 )
-@_dataset_options(
+@dataset_options(
     "Override a recipe field (repeatable), e.g. --set n_samples=6 (docs/rpi.md; sizes are "
     "bounded: main_games <= 1,000,000, horizon, history <= 1,000, ...)."
 )
@@ -189,16 +57,16 @@ def rpi(samples, solver, overrides, **run):
     """Robot-pedestrian interaction dataset (paper App. E.1)."""
     from scenarios.rpi import MAX_SAMPLES, RPIRecipe, RPIScenario
 
-    kw = _parse_set(overrides)
-    _exclusive(kw, "solver", "--solver", solver)
+    kw = parse_set(overrides)
+    exclusive(kw, "solver", "--solver", solver)
     if samples is not None:
         check_size("--samples", samples, MAX_SAMPLES, "samples of one dataset")
         if "main_games" in kw:
             raise SpecError("--set main_games", "is chosen by --samples; give one of them")
-        recipe = _recipe(lambda **k: RPIRecipe.for_samples(samples, **k), kw)
+        recipe = make_recipe(lambda **k: RPIRecipe.for_samples(samples, **k), kw)
     else:
-        recipe = _recipe(lambda **k: RPIRecipe.from_dict(k), kw)
-    _run_dataset(RPIScenario(recipe), **run)
+        recipe = make_recipe(lambda **k: RPIRecipe.from_dict(k), kw)
+    run_dataset(RPIScenario(recipe), **run)
 
 
 @generate.command("left-turn", short_help="Left-turn demonstrations (paper App. E, CARLA).")
@@ -209,7 +77,7 @@ def rpi(samples, solver, overrides, **run):
     help="Episodes per intersection geometry (default: the recipe's, 5 as in the paper; at "
     "most 100,000).",
 )
-@_dataset_options(
+@dataset_options(
     "Override a recipe field (repeatable), e.g. --set augment_copies=2 (docs/left_turn.md; "
     "sizes are bounded: horizon, history <= 1,000, augment_copies <= 100, ...)."
 )
@@ -217,7 +85,7 @@ def left_turn(episodes_per_geometry, overrides, **run):
     """Left-turn demonstrations on four intersections, split by intersection (docs/left_turn.md)."""
     from scenarios.left_turn import MAX_EPISODES_PER_GEOMETRY, LeftTurnRecipe, LeftTurnScenario
 
-    kw = _parse_set(overrides)
+    kw = parse_set(overrides)
     if episodes_per_geometry is not None:
         check_size(
             "--episodes-per-geometry",
@@ -225,8 +93,8 @@ def left_turn(episodes_per_geometry, overrides, **run):
             MAX_EPISODES_PER_GEOMETRY,
             "episodes (work units) per geometry",
         )
-    _exclusive(kw, "episodes_per_geometry", "--episodes-per-geometry", episodes_per_geometry)
-    _run_dataset(LeftTurnScenario(_recipe(lambda **k: LeftTurnRecipe.from_dict(k), kw)), **run)
+    exclusive(kw, "episodes_per_geometry", "--episodes-per-geometry", episodes_per_geometry)
+    run_dataset(LeftTurnScenario(make_recipe(lambda **k: LeftTurnRecipe.from_dict(k), kw)), **run)
 
 
 @generate.command("exid", short_help="Scenes of the exiD release layout (paper App. E, exiD).")
@@ -237,15 +105,15 @@ def left_turn(episodes_per_geometry, overrides, **run):
     help="Directory of the exiD release (data/NN_*.csv, maps/lanelet2/*.osm), or one made by "
     "'epo generate highway-raw'.",
 )
-@_dataset_options(
+@dataset_options(
     "Override a recipe field (repeatable), e.g. --set test_locations=[2] (docs/exid.md)."
 )
 def exid(raw, overrides, **run):
     """N = 4 scenes with a lane change, dt 0.2 s, 1.8 s history, 4 s future; test on its own map."""
     from scenarios.exid import ExidScenario
 
-    scenario = _recipe(lambda **k: ExidScenario.from_raw(raw, **k), _parse_set(overrides))
-    _run_dataset(scenario, **run)
+    scenario = make_recipe(lambda **k: ExidScenario.from_raw(raw, **k), parse_set(overrides))
+    run_dataset(scenario, **run)
 
 
 @generate.command("highway-raw", short_help="highway-env traffic written in the exiD layout.")
@@ -300,9 +168,9 @@ def highway_raw(out, recordings, seed, duration, overrides, workers, progress):
 
     check_size("--recordings", recordings, MAX_RECORDINGS, "recordings of a set")
     check_number("--duration", duration, lo=1.0, hi=MAX_DURATION)
-    kw = _parse_set(overrides)
-    _exclusive(kw, "recordings", "--recordings", recordings)
-    _exclusive(kw, "duration", "--duration", duration)
+    kw = parse_set(overrides)
+    exclusive(kw, "recordings", "--recordings", recordings)
+    exclusive(kw, "duration", "--duration", duration)
     try:
         opts = build_options(HighwayOptions, "highway", kw)
     except TypeError as e:
@@ -314,3 +182,7 @@ def highway_raw(out, recordings, seed, duration, overrides, workers, progress):
         f"{out}: {st['recordings']} recordings ({st['written']} written: {st['tracks']} tracks, "
         f"{st['rows']} rows, {st['crashes']} crashes removed) in {st['seconds']:.1f} s"
     )
+
+
+for _command in (eth_ucy, vci, waymo):  # the readers of recorded data, a module each
+    generate.add_command(_command)

@@ -24,7 +24,7 @@ import click
 from epo_casadi.errors import OutputError, SpecError, check_size
 from scenarios.closed_loop.roles import PLANNERS, TRACKERS
 
-from .generate import _cores, _parse_set, capped_workers, engine_options
+from .dataset_options import capped_workers, cores, engine_options, parse_set
 
 
 @click.command("simulate")
@@ -146,7 +146,7 @@ def simulate(
     check_size("--episodes", episodes, MAX_EPISODES, "results held in memory")
     if scheduler is None:  # processes on this machine: no more than its usable cores
         workers = capped_workers(workers)
-    workers = workers or _cores()
+    workers = workers or cores()
     config = SimConfig(
         scenario,
         planner=planner,
@@ -193,7 +193,7 @@ def _option_groups(overrides, noise, dropout, geometry) -> dict[str, dict]:
     """``--set`` and the world's shortcuts (``--noise``, ``--dropout``, ``--geometry``) as
     options per role: ``{"world": ..., "planner": ..., "tracker": ..., "estimator": ...}``."""
     groups: dict[str, dict] = {"world": {}, "planner": {}, "tracker": {}, "estimator": {}}
-    for key, value in _parse_set(overrides).items():
+    for key, value in parse_set(overrides).items():
         head, _, name = key.partition(".")
         if head not in groups or not name:
             raise click.BadParameter(

@@ -235,14 +235,16 @@ def _cut(fp, cands, lo, step, H, T, N, dt, max_distance) -> dict:
         chosen = [cands[j] for j in select_agents(scores, cid, N - 1, max_distance)]
     agents = [fp, *chosen]
     states = np.zeros((n, N, 4))
-    for a, p in enumerate(agents):
-        w = _window(p, lo, step, n)
-        states[:, a] = unicycle_states(
-            p.xy[w],
-            dt,
-            None if p.heading is None else p.heading[w],
-            None if p.speed is None else p.speed[w],
-        )
+    wins = [_window(p, lo, step, n) for p in agents]
+    # one batched call for every agent; recorded headings and speeds replace the differences
+    states[:, : len(agents)] = unicycle_states(
+        np.stack([p.xy[w] for p, w in zip(agents, wins, strict=True)]), dt
+    ).transpose(1, 0, 2)
+    for a, (p, w) in enumerate(zip(agents, wins, strict=True)):
+        if p.heading is not None:
+            states[:, a, 3] = p.heading[w]
+        if p.speed is not None:
+            states[:, a, 2] = p.speed[w]
     origin = states[H, 0, :2].copy()
     k = len(agents)
     states[:, :k, :2] -= origin
