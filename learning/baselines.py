@@ -9,7 +9,9 @@ modes is the one mode's error, and the most likely mode is mode 0). With a singl
 history step the velocity is zero.
 
 The predictor has the models' interface (:mod:`learning.models`): ``forward(scene)`` on
-the scene dict returns ``pos`` ``(B, M, N, T, 2)`` and joint ``logits`` ``(B, M)``.
+the scene dict returns ``pos`` ``(B, M, N, T, 2)`` and joint ``logits`` ``(B, M)``. A padded
+agent (``agents_mask`` False) is extrapolated from its neutral history
+(:func:`learning.masks.neutral_scene`): it stays at rest, far from the real agents.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import torch
 from torch import nn
 
 from epo_casadi.errors import SpecError
+
+from .masks import neutral_scene
 
 __all__ = ["ConstantVelocity", "constant_velocity"]
 
@@ -48,7 +52,8 @@ class ConstantVelocity(nn.Module):
         self.horizon, self.modes = horizon, modes
 
     def forward(self, scene: dict) -> dict:
-        pos = constant_velocity(scene["history"], self.horizon)  # (B, N, T, 2)
+        # a padded agent (agents_mask False) stays at its neutral position (learning.masks)
+        pos = constant_velocity(neutral_scene(scene)["history"], self.horizon)  # (B, N, T, 2)
         B = pos.shape[0]
         return {
             "pos": pos[:, None].expand(B, self.modes, *pos.shape[1:]),

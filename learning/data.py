@@ -25,6 +25,7 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     goal_lane      (B, N, G)      int64     per goal candidate the index in ``lanes`` of the
                                             lane it lies on, -1 off every lane (see below)
     history_valid  (B, H+1)       bool      False: extrapolated (all True if not stored)
+    agents_mask    (B, N)         bool      False: a padded agent slot (all True if not stored)
     gt             (B, N, T, 2)   float32   ground-truth future positions
     gt_states      (B, N, T, 4)   float32   ground-truth future states
     index          (B,)           int64     sample indices in the split
@@ -34,6 +35,11 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
 without ``goals`` suits ours with a goal decoder (``goal_decoder="candidates"`` or
 ``"regress"``) and the baselines.
 The ground truth is chosen by :func:`ground_truth`, the one place that knows how.
+
+``agents_mask`` (dataset field ``(N,)`` bool, e.g. the readers of :mod:`scenarios.real`):
+a scene with fewer than ``N`` recorded agents is padded, and its padded slots are False.
+The batch always carries it (all True for a dataset without the field); the models,
+losses and metrics mask the padded agents (:mod:`learning.masks`).
 
 ``goal_lane`` is derived from the exiD layout's ``goal_candidate_lane`` (0 left, 1 current,
 2 right) and ``goal_candidate_on_lane`` when ``lanes`` holds each agent's three lanes in a
@@ -94,13 +100,22 @@ OPTIONAL_FIELDS = (
     "width",
     "goal_candidate_lane",
     "goal_candidate_on_lane",
+    "agents_mask",
 )
-#: the optional fields a batch carries as float32 arrays (``history_valid`` becomes a mask,
-#: ``gt_mode`` selects the ground truth, the ``goal_candidate_*`` ones become ``goal_lane``)
+#: the optional fields a batch carries as float32 arrays (``history_valid`` and
+#: ``agents_mask`` become masks, ``gt_mode`` selects the ground truth, the
+#: ``goal_candidate_*`` ones become ``goal_lane``)
 FLOAT_FIELDS = tuple(
     k
     for k in OPTIONAL_FIELDS
-    if k not in ("history_valid", "gt_mode", "goal_candidate_lane", "goal_candidate_on_lane")
+    if k
+    not in (
+        "history_valid",
+        "agents_mask",
+        "gt_mode",
+        "goal_candidate_lane",
+        "goal_candidate_on_lane",
+    )
 )
 
 
@@ -266,6 +281,17 @@ class SceneDataset(torch.utils.data.Dataset):
             raise DatasetError(
                 f"{where}.schema.goal_candidates", f"expected shape ({N}, G, 2), got {gc}"
             )
+        if "agents_mask" in shape:
+            if shape["agents_mask"] != (N,):
+                raise DatasetError(
+                    f"{where}.schema.agents_mask",
+                    f"expected shape ({N},), got {shape['agents_mask']}",
+                )
+            if np.dtype(schema["agents_mask"]["dtype"]) != np.dtype(bool):
+                raise DatasetError(
+                    f"{where}.schema.agents_mask",
+                    f"expected dtype bool, got {schema['agents_mask']['dtype']}",
+                )
         if len(fs) != 4 or fs[1] != N or fs[3] < 2:
             raise DatasetError(
                 f"{where}.schema.future", f"expected shape (M, {N}, T, nx), got {fs}"
@@ -318,6 +344,10 @@ class SceneDataset(torch.utils.data.Dataset):
             if k in raw:
                 out[k] = np.ascontiguousarray(raw[k], np.float32)
         out["history_valid"] = np.ascontiguousarray(valid, bool)
+        agents = raw.get("agents_mask")
+        if agents is None:
+            agents = np.ones((n, self.n_agents), bool)
+        out["agents_mask"] = np.ascontiguousarray(agents, bool)
         if "goal_candidate_lane" in raw and "lanes" in raw:
             gl = goal_lanes(
                 raw["goal_candidate_lane"], raw.get("goal_candidate_on_lane"), raw["lanes"].shape[1]

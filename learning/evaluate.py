@@ -8,7 +8,9 @@ the marginal V-LSTM gives per-agent probabilities, turned into joint scenes by
 :func:`learning.metrics.marginal_to_joint` as in the paper. The agents' radii for OR come
 from the dataset's game; on datasets with vehicle sizes (exiD layout: ``length``, ``width``)
 ``OR`` uses oriented vehicle boxes instead and ``OR_circle`` keeps the circles
-(:mod:`learning.metrics`); the table's header says which.
+(:mod:`learning.metrics`); the table's header says which. Padded agents (the batches'
+``agents_mask`` False) count in no metric: the means are over each sample's real agents,
+the overlap rate over pairs of real agents.
 
 :func:`evaluate` scores run directories (written by :func:`learning.train.train`; their
 ``best.pt`` by default) and optionally CV on one split and returns an

@@ -62,10 +62,24 @@ Backward modes (explicit choice, ``backward=``)
         optimum the solution does not depend on where the solver started (the same
         convention as CasADi ``nlpsol`` sensitivities and Theseus' implicit mode). The
         gradient is only as good as the convergence: read the status (``CONVERGED`` vs
-        ``MAX_ITER``). A singular ``H`` falls back to the pseudo-inverse.
+        ``MAX_ITER``). A singular ``H`` falls back to the pseudo-inverse. A control no
+        residual depends on (a row of ``H`` exactly zero) gets ``w = 0`` on its own,
+        without the fallback: see *Padded agents* below.
 
     The states output ``x(u, p)`` adds ``dx/du' xbar`` and ``dx/dp' xbar`` (a CasADi reverse
     function of the rollout) in both modes.
+
+Padded agents
+    An agent whose own weights and pair weights are all zero (a padded agent of a scene
+    with fewer agents, :mod:`learning.masks`) adds no residual: its rows of ``r`` are
+    zero and so are its columns of ``J`` (``w * dc/du`` with ``w = 0``). With ``D = I``
+    (``ellipsoidal=False``, which both modes use) the row of the damped system
+    ``(J'J + lambda I) du = -J'r`` for such a control reads ``lambda du = 0``: its controls
+    never move from their initial value (0 for a pad) and are not optimized. The unrolled
+    backward solves with the same matrix (non-singular for ``lambda > 0``); the implicit
+    backward's exact Hessian has a zero row and column there, which its solve treats as
+    decoupled (``w = 0`` on those controls, the pseudo-inverse's answer) instead of
+    falling back to the pseudo-inverse of the whole system.
 
 Precision and devices
     Inputs may be float32 or float64; the layer computes in float64 and casts the

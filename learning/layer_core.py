@@ -339,7 +339,19 @@ def _merge(old, new, keep):
 
 
 def _sym_solve(H: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Batched ``H^{-1} rhs``; the pseudo-inverse where ``H`` is singular."""
+    """Batched ``H^{-1} rhs``; the pseudo-inverse where ``H`` is singular.
+
+    A control whose row of ``H`` is exactly zero (no residual depends on it: a padded
+    agent's, whose weights are all zero) is decoupled from the others: the solve puts a
+    unit diagonal there and a zero right-hand side, so its component is 0 and the rest is
+    ``H_rest^{-1} rhs_rest``, the pseudo-inverse's answer, without making the whole system
+    singular."""
+    free = ~np.any(H != 0, axis=-1)  # (B, n): an exactly zero row (and column: H = H')
+    if free.any():
+        H = H.copy()
+        b, i = np.nonzero(free)
+        H[b, i, i] = 1.0
+        rhs = np.where(free, 0.0, rhs)
     try:
         w = np.linalg.solve(H, rhs[..., None])[..., 0]
         if np.all(np.isfinite(w)):

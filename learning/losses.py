@@ -13,6 +13,12 @@ goals, the minSFDE-style ``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` (App. F.4, W
 marginal V-LSTM uses per-agent minADE plus a per-agent classification loss.
 
 Shapes follow :mod:`learning.metrics`: ``pos`` ``(B, M, N, T, 2)``, ``gt`` ``(B, N, T, 2)``.
+
+``mask`` ``(B, N)`` bool (the batch's ``agents_mask``): every per-agent term is averaged over
+the agents of ``mask`` only. A padded agent's (False) predictions, ground truth, logits and
+candidates are replaced by zeros with ``torch.where`` before any arithmetic, so no value of a
+pad (inf, NaN) reaches the loss or its gradient. A mask with every agent True is the same as
+no mask: the numbers are those computed without one.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .masks import active, where_agents
 from .metrics import agent_mean
 
 __all__ = [
@@ -53,14 +60,24 @@ def _masked_mean(v: torch.Tensor, mask) -> torch.Tensor:
     """Mean of per-agent values ``v`` ``(B, N)`` over the batch and the agents of ``mask``."""
     if mask is None:
         return v.mean()
-    m = mask.to(v.dtype)
-    return (v * m).sum() / m.sum().clamp_min(1)
+    m = mask.to(torch.bool)
+    return torch.where(m, v, torch.zeros((), dtype=v.dtype)).sum() / m.sum().clamp_min(1)
+
+
+def _real(mask, *pairs):
+    """``(mask or None, tensors)``: ``mask`` as :func:`learning.masks.active` (None without a
+    pad), and each ``(tensor, agent_dim)`` of ``pairs`` with zeros on the padded agents."""
+    mask = active(mask)
+    if mask is None:
+        return None, [t for t, _ in pairs]
+    return mask, [where_agents(mask, t, 0.0, agent_dim=d) for t, d in pairs]
 
 
 def scene_loss(
     pos, logits, gt, weights: LossWeights = LossWeights(), mask=None
 ) -> dict[str, torch.Tensor]:
     """Joint (scene-level) loss; returns the total and its parts (means over the batch)."""
+    mask, (pos, gt) = _real(mask, (pos, 2), (gt, 1))
     sq = ((pos - gt[:, None]) ** 2).sum(-1).mean(-1)  # (B, M, N)
     per_mode = agent_mean(sq, mask)  # (B, M)
     best = per_mode.argmin(dim=1)
@@ -77,6 +94,7 @@ def marginal_loss(
 
     ``logits`` are per agent, ``(B, N, M)``.
     """
+    mask, (pos, gt, logits) = _real(mask, (pos, 2), (gt, 1), (logits, 1))
     ade = torch.linalg.vector_norm(pos - gt[:, None], dim=-1).mean(-1)  # (B, M, N)
     best = ade.argmin(dim=1)  # (B, N)
     imit_agent = ade.gather(1, best[:, None]).squeeze(1)  # (B, N)
@@ -94,6 +112,9 @@ def goal_classification_loss(logits, candidates, gt_final, cand_mask=None, mask=
 
     ``candidates`` ``(B, N, G, 2)``; masked candidates (``cand_mask`` False) are never targets.
     """
+    mask, (logits, candidates, gt_final) = _real(mask, (logits, 1), (candidates, 1), (gt_final, 1))
+    if mask is not None and cand_mask is not None:
+        cand_mask = cand_mask.bool() | ~mask[:, :, None]
     d = torch.linalg.vector_norm(candidates - gt_final[:, :, None], dim=-1)  # (B, N, G)
     if cand_mask is not None:
         d = d.masked_fill(~cand_mask.bool(), torch.inf)
@@ -106,6 +127,7 @@ def goal_classification_loss(logits, candidates, gt_final, cand_mask=None, mask=
 
 def goal_regression_loss(goals, gt_final, mask=None):
     """``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` for goals ``(B, M, N, 2)``; mean over the batch."""
+    mask, (goals, gt_final) = _real(mask, (goals, 2), (gt_final, 1))
     sq = ((goals - gt_final[:, None]) ** 2).sum(-1)  # (B, M, N)
     return agent_mean(sq, mask).min(dim=1).values.mean()
 

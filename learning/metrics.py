@@ -5,7 +5,11 @@ Shapes (``B`` samples, ``M`` modes, ``N`` agents, ``T`` future steps):
 - ``pred``: ``(B, M, N, T, 2)`` predicted positions;
 - ``gt``: ``(B, N, T, 2)`` ground-truth positions;
 - ``probs``: ``(B, M)`` joint mode probabilities, or ``(B, N, M)`` marginal ones;
-- ``mask``: optional ``(B, N)`` boolean, True for agents that count.
+- ``mask``: optional ``(B, N)`` boolean, True for agents that count (the batch's
+  ``agents_mask``: padded agents are False). Every mean over agents counts only the agents
+  of ``mask``, the overlap rate only pairs of two such agents, and the joint scenes of
+  marginal predictions only their probabilities; a padded agent's values, whatever they
+  are (inf, NaN), change no metric.
 
 Definitions (``d = ||pred - gt||_2`` per agent and step):
 
@@ -87,10 +91,11 @@ def agent_mean(v, mask=None):
     of ``mask`` ``(B, N)`` (all agents without a mask)."""
     if mask is None:
         return v.mean(-1)
-    m = mask.to(v.dtype)
+    m = _t(mask).to(device=v.device, dtype=torch.bool)
     while m.ndim < v.ndim:
         m = m.unsqueeze(1)
-    return (v * m).sum(-1) / m.sum(-1).clamp_min(1)
+    zero = torch.zeros((), dtype=v.dtype, device=v.device)
+    return torch.where(m, v, zero).sum(-1) / m.to(v.dtype).sum(-1).clamp_min(1)
 
 
 def min_ade(pred, gt, mask=None) -> torch.Tensor:
@@ -273,12 +278,14 @@ def box_hits(
     return hit, h
 
 
-def marginal_to_joint(pred, probs):
+def marginal_to_joint(pred, probs, mask=None):
     """Joint scenes from per-agent modes ordered by marginal probability.
 
     ``pred`` ``(B, M, N, T, 2)`` holds agent ``i``'s ``m``-th mode at ``[:, m, i]``;
     ``probs`` ``(B, N, M)``. Returns the reordered ``pred`` (joint mode ``m`` = every agent's
     ``m``-th most likely mode) and joint probabilities ``(B, M)`` (products, normalized).
+    ``mask`` ``(B, N)``: only the agents of ``mask`` enter the products (a padded agent's
+    probabilities count as 1).
     """
     pred, probs = _t(pred), _t(probs)
     B, M, N = pred.shape[:3]
@@ -286,6 +293,9 @@ def marginal_to_joint(pred, probs):
         raise ValueError(
             f"probs: expected marginal probabilities of shape {(B, N, M)}, got {tuple(probs.shape)}"
         )
+    if mask is not None:
+        m = _t(mask).to(device=probs.device, dtype=torch.bool)[..., None]
+        probs = torch.where(m, probs, torch.ones((), dtype=probs.dtype, device=probs.device))
     order = probs.argsort(dim=-1, descending=True)  # (B, N, M)
     idx = order.permute(0, 2, 1)  # (B, M, N): mode of agent n in joint mode m
     joint = torch.gather(pred, 1, idx[..., None, None].expand(B, M, N, *pred.shape[3:]))
@@ -304,7 +314,7 @@ def all_metrics(pred, gt, probs, radii, mask=None, boxes=None) -> dict[str, torc
     probs = _t(probs)
     marginal = {"minADE": min_ade(pred, gt, mask), "minFDE": min_fde(pred, gt, mask)}
     if probs.ndim == 3:
-        pred, probs = marginal_to_joint(pred, probs)
+        pred, probs = marginal_to_joint(pred, probs, mask)
     out = {
         **marginal,
         "minSADE": min_sade(pred, gt, mask),

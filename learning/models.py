@@ -46,6 +46,21 @@ Predictors (:func:`build_model`):
   loss.
 - ``"vlstm"`` (V-LSTM marginal): per agent ``M`` position trajectories and per-agent mode
   logits, trained with the marginal minADE loss plus classification.
+
+Padded agents (scene ``agents_mask`` ``(B, N)`` False; :mod:`learning.masks`)
+    Every forward starts from :func:`learning.masks.neutral_scene` (a pad's every value
+    replaced by a fixed finite one, far from the real agents) and gives the encoder the
+    mask (a pad's feature is zero and no other agent attends to it). Ours: a pad's own
+    weights and the weights of every pair it is in are 0, so it adds no residual and no
+    collision pair; its initial strategy is 0 and, with every column of ``J`` that belongs
+    to it zero, the layer's damped steps leave it at 0: the pad stays at rest at its
+    neutral position. The goal decoder runs on the real agents only (its batch norm never
+    sees a pad); a pad's goals are its position. + SC: a pad's controls are 0. V-LSTM: a
+    pad's trajectory is its position, its mode logits 0. The decoders that read all
+    agents at once (the pair-weight decoder, the scene-probability decoder) see for a pad
+    a zero feature and zero displacements: a constant, whatever the pad's recorded values.
+    Without a pad (no ``agents_mask``, or all True) every number is the one computed
+    without the mask.
 """
 
 from __future__ import annotations
@@ -63,6 +78,7 @@ from epo_casadi.game import PotentialGame
 from solvers.lm import LMOptions
 
 from . import backbones as _backbones
+from . import masks as _masks
 from .bridge import GameRollout
 
 GOAL_DECODERS = ("given", "candidates", "regress")
@@ -369,14 +385,29 @@ class GoalDecoder(nn.Module):
             nn.Linear(w, out),
         )  # fmt: skip
 
-    def forward(self, scene: dict, z: torch.Tensor) -> dict:
+    def _net(self, inp: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+        """The MLP on the rows ``rows`` (bool, ``(len(inp),)``) of ``inp``, zeros on the others
+        (None: every row). Batch norm then counts only those rows."""
+        if rows is None:
+            return self.net(inp)
+        idx = torch.nonzero(rows).flatten()
+        if self.training and len(idx) < 2:  # batch norm needs two rows: pads are constants
+            return self.net(inp)
+        out = self.net(inp[idx])
+        return out.new_zeros(inp.shape[0], out.shape[1]).index_copy(0, idx, out)
+
+    def forward(self, scene: dict, z: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        """``mask`` ``(B, N)`` (None: every agent real): the MLP runs on the real agents'
+        rows only (its batch norm never sees a pad); a pad's logits are 0 and its regressed
+        goals are its current position."""
         B, N, W = z.shape
         M = self.cfg.modes
         cur = scene["history"][:, -1, :, :2].to(z.dtype)  # (B, N, 2)
         if self.cfg.goal_decoder == "regress":
-            off = self.net(z.reshape(B * N, W)).reshape(B, N, M, 2)
+            rows = None if mask is None else mask.reshape(B * N)
+            off = self._net(z.reshape(B * N, W), rows).reshape(B, N, M, 2)
             return {"goals": (cur[:, :, None] + off).permute(0, 2, 1, 3)}
-        cand, mask = goal_candidates(scene, self.cfg)
+        cand, cand_mask = goal_candidates(scene, self.cfg)
         cand = cand.to(z.dtype)
         G = cand.shape[2]
         if G < M:
@@ -385,15 +416,16 @@ class GoalDecoder(nn.Module):
             )
         rel = cand - cur[:, :, None]
         inp = torch.cat([z[:, :, None].expand(B, N, G, W), rel], -1).reshape(B * N * G, W + 2)
-        logits = self.net(inp).reshape(B, N, G)
-        logits = logits.masked_fill(~mask.to(logits.device), torch.finfo(logits.dtype).min)
+        rows = None if mask is None else mask[:, :, None].expand(B, N, G).reshape(-1)
+        logits = self._net(inp, rows).reshape(B, N, G)
+        logits = logits.masked_fill(~cand_mask.to(logits.device), torch.finfo(logits.dtype).min)
         top = logits.topk(M, dim=-1).indices  # (B, N, M): most likely first
         goals = cand.gather(2, top[..., None].expand(B, N, M, 2))
         return {
             "goals": goals.permute(0, 2, 1, 3),
             "goal_logits": logits,
             "goal_candidates": cand,
-            "goal_candidates_mask": mask,
+            "goal_candidates_mask": cand_mask,
             "goal_index": top,
         }
 
@@ -423,7 +455,11 @@ class _Base(nn.Module):
         )
 
     def scene_logits(self, z: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-        """Scene-probability decoder on ``[z_all, X^m]`` for every mode -> logits ``(B, M)``."""
+        """Scene-probability decoder on ``[z_all, X^m]`` for every mode -> logits ``(B, M)``.
+
+        ``X^m`` are the displacements from each agent's first predicted position. A padded
+        agent contributes a constant: its feature is zero (the encoder's) and it stays at
+        rest (zero displacements)."""
         B, M = pos.shape[:2]
         zin = z.reshape(B, 1, -1).expand(B, M, -1)
         inp = torch.cat([zin, (pos - pos[:, :, :, :1]).reshape(B, M, -1)], -1).reshape(B * M, -1)
@@ -476,9 +512,16 @@ class EPOModel(_Base):
         self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
 
     def decode_goals(self, scene: dict, z: torch.Tensor) -> dict:
-        """Goals ``(B, M, N, 2)`` of every mode: the scene's, or the goal decoder's (and its logits)."""
+        """Goals ``(B, M, N, 2)`` of every mode: the scene's, or the goal decoder's (and its
+        logits). A padded agent's goals are its (neutral) current position."""
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")
         if self.goal_dec is not None:
-            return {**self.goal_dec(scene, z), "decoded_goals": True}
+            out = self.goal_dec(scene, z, mask)
+            if mask is not None:
+                cur = scene["history"][:, -1, :, :2].to(out["goals"].dtype)
+                out["goals"] = _masks.where_agents(mask, out["goals"], cur[:, None], agent_dim=2)
+            return {**out, "decoded_goals": True}
         if not self.goal_idx:
             return {}
         if "goals" not in scene:
@@ -503,7 +546,11 @@ class EPOModel(_Base):
         ``paths``, ``vref`` and ``radius`` when present (:func:`scene_reference`), else the
         game's defaults. With ``lane_path="goal"`` and decoded candidates (``goal_index``
         ``(B, N, M)``) on a scene with ``goal_lane``, each mode's ``path`` is the lane of its
-        goal (:func:`goal_paths`)."""
+        goal (:func:`goal_paths`). A padded agent (scene ``agents_mask`` False) gets the
+        neutral references of :func:`learning.masks.neutral_scene` and zero weights: its
+        own weights and those of every pair it is in are 0 (no residual, no collision pair)."""
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")  # only where the scene has a pad
         B, M, N = z.shape[0], self.cfg.modes, self.N
         L = self.game.params
         p = self.base_params.to(z.dtype).expand(B, M, -1).clone()
@@ -529,30 +576,35 @@ class EPOModel(_Base):
                     p[..., L[f"path.{a}"].slice] = per_mode[:, i]
         w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
+        if mask is not None:  # a pad: no residual, no collision pair
+            zero = torch.zeros((), dtype=z.dtype, device=z.device)
+            w_own = torch.where(_masks.own_mask(self.game, mask)[:, None], w_own, zero)
+            w_pair = torch.where(_masks.pair_mask(self.game, mask)[:, None], w_pair, zero)
         p = p.index_copy(-1, self.own_idx.to(z.device), w_own)
         p = p.index_copy(-1, self.pair_idx.to(z.device), w_pair)
         if not self.cfg.goal_features and self.goal_w:
             p[..., self.goal_w] = 0.0
         return p
 
-    def initial_strategies(self, z: torch.Tensor) -> torch.Tensor:
+    def initial_strategies(self, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """Initial strategies ``U_init`` ``(B, M, N * K * nu)`` of the layer from agent features
-        ``z`` ``(B, N, W)`` (zeros for the ``learned_init=False`` ablation)."""
+        ``z`` ``(B, N, W)`` (zeros for the ``learned_init=False`` ablation); zero for the
+        padded agents of ``mask`` ``(B, N)`` (None: none)."""
         B, M = z.shape[0], self.cfg.modes
-        u0 = (
-            self.init_dec(z)
-            .reshape(B, self.N, M, self.K * self.nu)
-            .permute(0, 2, 1, 3)
-            .reshape(B, M, -1)
-        )
+        u0 = self.init_dec(z).reshape(B, self.N, M, self.K * self.nu)
+        if mask is not None:
+            u0 = _masks.where_agents(mask, u0, 0.0)
+        u0 = u0.permute(0, 2, 1, 3).reshape(B, M, -1)
         return u0 if self.cfg.learned_init else torch.zeros_like(u0)
 
     def forward(self, scene: dict) -> dict:
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")  # only where the scene has a pad
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
         goal_out = self.decode_goals(scene, z)
         p = self.game_params(scene, z, goal_out.get("goals"), goal_out.get("goal_index"))
-        u0 = self.initial_strategies(z)
+        u0 = self.initial_strategies(z, mask)
         out = self.layer(p.double(), u0.double())
         x = out.states.to(z.dtype).reshape(B, M, self.N, self.K + 1, -1)[:, :, :, 1:]  # drop x_0
         pos = x[..., :2]
@@ -582,9 +634,14 @@ class SCModel(_Base):
         )
 
     def forward(self, scene: dict) -> dict:
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")  # only where the scene has a pad
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
-        U = self.ctrl_dec(z).reshape(B, self.N, M, self.K, self.nu).permute(0, 2, 1, 3, 4)
+        U = self.ctrl_dec(z).reshape(B, self.N, M, self.K, self.nu)
+        if mask is not None:  # a pad stays at rest at its neutral position
+            U = _masks.where_agents(mask, U, 0.0)
+        U = U.permute(0, 2, 1, 3, 4)
         x0 = scene["history"][:, -1].to(z.dtype)[:, None].expand(B, M, -1, -1)
         x = self.rollout.states(x0, U)[..., 1:, :]  # drop x_0
         pos = x[..., :2]
@@ -603,12 +660,18 @@ class VLSTMModel(nn.Module):
         self.cls_dec = nn.Sequential(mlp(W, w, M))
 
     def forward(self, scene: dict) -> dict:
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")  # only where the scene has a pad
         z = self.encoder(scene)
         B, M = z.shape[0], self.cfg.modes
         cur = scene["history"][:, -1, :, :2].to(z.dtype)  # (B, N, 2)
         off = self.traj_dec(z).reshape(B, self.N, M, self.K, 2).cumsum(dim=3)
+        logits = self.cls_dec(z)  # (B, N, M)
+        if mask is not None:  # a pad: at rest at its neutral position, uniform modes
+            off = _masks.where_agents(mask, off, 0.0)
+            logits = _masks.where_agents(mask, logits, 0.0)
         pos = (cur[:, :, None, None] + off).permute(0, 2, 1, 3, 4)  # (B, M, N, K, 2)
-        return {"pos": pos, "marginal_logits": self.cls_dec(z)}  # (B, N, M)
+        return {"pos": pos, "marginal_logits": logits}
 
 
 #: model kind -> class, or its ``"module:Class"`` path, imported by :func:`model_class` on

@@ -55,7 +55,9 @@ def evaluate_model(
     """Mean of every metric over ``data`` (and ``samples``); the model is put in eval mode.
 
     :data:`METRICS`; on data with vehicle sizes (:func:`boxes`) ``OR`` uses boxes and
-    ``OR_circle`` is added (the circles of the game's radii)."""
+    ``OR_circle`` is added (the circles of the game's radii). Every metric counts only the
+    batch's real agents (``agents_mask``; the overlap rate only pairs of real agents): a
+    sample's value is the mean over its real agents, then samples count alike."""
     radii = torch.tensor([a.radius for a in data.game.agents], dtype=torch.float32)
     was_training = model.training
     model.eval()
@@ -70,7 +72,14 @@ def evaluate_model(
         with torch.no_grad():
             for batch in data.batches(batch_size):
                 pos, probs, _ = predict(model, batch)
-                m = all_metrics(pos.float(), batch["gt"], probs.float(), radii, boxes=boxes(batch))
+                m = all_metrics(
+                    pos.float(),
+                    batch["gt"],
+                    probs.float(),
+                    radii,
+                    mask=batch.get("agents_mask"),
+                    boxes=boxes(batch),
+                )
                 for k in m.keys() - sums.keys():  # OR_circle with boxes
                     sums[k] = 0.0
                 for k in m:

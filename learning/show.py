@@ -7,6 +7,8 @@ agent and mode, the predicted weights of the agent's own energy features and the
 pairwise (collision) weight as bars (log scale), with the weights of the game that
 generated the sample as black markers. The game's solution is invariant to a common
 scale of all weights, so compare ratios between features, not absolute heights.
+Padded agents (the sample's ``agents_mask`` False) are not drawn: no history, truth,
+prediction, goal or weight panel, and the view fits the real agents only.
 """
 
 from __future__ import annotations
@@ -57,13 +59,22 @@ def _model_of(run_dir, game, n_modes: int, checkpoint: str):
     return model, method_label(cfg.model), cfg.model.kind
 
 
+def _real_agents(batch) -> np.ndarray:
+    """Indices of the sample's real agents (``agents_mask`` True; every agent without it)."""
+    N = batch["history"].shape[2]
+    if "agents_mask" not in batch:
+        return np.arange(N)
+    return np.flatnonzero(batch["agents_mask"][0].numpy())
+
+
 def _draw_scene(ax, game, batch, raw, agents, gt) -> None:
-    """Lanes, histories, agent discs and given goals, the other dataset modes, the truth."""
+    """Lanes, histories, agent discs and given goals, the other dataset modes, the truth
+    (real agents only)."""
     from matplotlib.patches import Circle
 
     hist = batch["history"][0].numpy()  # (H+1, N, 4)
     hvalid = batch["history_valid"][0].numpy()
-    N = hist.shape[1]
+    real = _real_agents(batch)
     # ---- map (scenes with lanes, e.g. exiD-format): lane polylines in light grey
     if "lanes" in batch:
         lanes = batch["lanes"][0].numpy()
@@ -72,7 +83,7 @@ def _draw_scene(ax, game, batch, raw, agents, gt) -> None:
         for n, k in enumerate(keep):
             ax.plot(*lanes[k].T, "-", color="0.88", lw=5, zorder=0, label=None if n else "lanes")
     # ---- trajectories
-    for i in range(N):
+    for i in real:
         c = AGENT_COLORS[i % len(AGENT_COLORS)]
         ax.plot(hist[~hvalid, i, 0], hist[~hvalid, i, 1], ":", color=c, alpha=0.3)
         ax.plot(
@@ -93,7 +104,7 @@ def _draw_scene(ax, game, batch, raw, agents, gt) -> None:
     for m in range(fut.shape[0]):
         if m == gt_mode or not valid[m]:
             continue
-        for i in range(N):
+        for n, i in enumerate(real):
             xy = np.concatenate([hist[-1:, i, :2], fut[m, i, :, :2]])
             ax.plot(
                 xy[:, 0],
@@ -101,22 +112,22 @@ def _draw_scene(ax, game, batch, raw, agents, gt) -> None:
                 "-",
                 color="0.6",
                 lw=1,
-                label="other dataset mode" if i == 0 and m == (1 if gt_mode == 0 else 0) else None,
+                label="other dataset mode" if n == 0 and m == (1 if gt_mode == 0 else 0) else None,
             )
-    for i in range(N):
+    for n, i in enumerate(real):
         xy = np.concatenate([hist[-1:, i, :2], gt[i]])
         ax.plot(
-            xy[:, 0], xy[:, 1], "--", color="0.15", lw=2.5, label="ground truth" if i == 0 else None
+            xy[:, 0], xy[:, 1], "--", color="0.15", lw=2.5, label="ground truth" if n == 0 else None
         )
 
 
-def _draw_modes(ax, out, pos, probs, hist, gt):
-    """A goal decoder's goals and the predicted modes, most likely first; returns the
-    decoded goals ``(M, N, 2)`` or None."""
-    M, N = pos.shape[:2]
+def _draw_modes(ax, out, pos, probs, hist, gt, real):
+    """A goal decoder's goals and the predicted modes, most likely first, of the agents
+    ``real``; returns their decoded goals ``(M, len(real), 2)`` or None."""
+    M = pos.shape[0]
     decoded = None
     if isinstance(out, dict) and out.get("decoded_goals", False):  # a goal decoder's goals
-        decoded = out["goals"][0].detach().numpy()  # (M, N, 2)
+        decoded = out["goals"][0].detach().numpy()[:, real]  # (M, n_real, 2)
         for m in range(M):
             ax.plot(
                 decoded[m, :, 0],
@@ -130,8 +141,8 @@ def _draw_modes(ax, out, pos, probs, hist, gt):
     order = np.argsort(-probs)
     for rank, m in enumerate(order):
         c = MODE_COLORS[m % len(MODE_COLORS)]
-        sade = float(np.linalg.norm(pos[m] - gt, axis=-1).mean())
-        for i in range(N):
+        sade = float(np.linalg.norm(pos[m, real] - gt[real], axis=-1).mean())
+        for n, i in enumerate(real):
             xy = np.concatenate([hist[-1:, i, :2], pos[m, i]])
             ax.plot(
                 xy[:, 0],
@@ -143,7 +154,7 @@ def _draw_modes(ax, out, pos, probs, hist, gt):
                 marker="os^v"[i % 4],
                 markevery=[len(xy) - 1],
                 ms=6,
-                label=f"mode {m}: p={probs[m]:.2f}, SADE {sade:.2f} m" if i == 0 else None,
+                label=f"mode {m}: p={probs[m]:.2f}, SADE {sade:.2f} m" if n == 0 else None,
             )
     return decoded
 
@@ -163,9 +174,10 @@ def _fit_view(ax, pts: np.ndarray) -> None:
     ax.set_ylabel("y (m)")
 
 
-def _draw_weights(fig, gs, out, game, raw, probs, agents) -> None:
-    """Ours' predicted game weights per mode (one panel per agent, one pairwise), log scale,
-    with the dataset game's weights where the sample stores them."""
+def _draw_weights(fig, gs, out, game, raw, probs, agents, real) -> None:
+    """Ours' predicted game weights per mode (one panel per real agent, one pairwise for the
+    pairs of real agents), log scale, with the dataset game's weights where the sample
+    stores them."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     M = len(probs)
@@ -176,11 +188,17 @@ def _draw_weights(fig, gs, out, game, raw, probs, agents) -> None:
     )
     own = game.params.group("w_own")
     pair = game.params.group("w_pair")
+    from .masks import game_pairs
+
     panels = []
     for i, a in enumerate(game.agent_names):
+        if i not in real:
+            continue
         idx = [j for j in own if names[j].startswith(f"w.{a}.")]
         panels.append((f"{agents[i]}: own weights", idx, [names[j][len(f"w.{a}.") :] for j in idx]))
-    panels.append(("pairwise weights", list(pair), [names[j][2:] for j in pair]))
+    pair = [j for j, (a, b) in zip(pair, game_pairs(game), strict=True) if a in real and b in real]
+    if pair:  # no pair panel with a single real agent
+        panels.append(("pairwise weights", pair, [names[j][2:] for j in pair]))
     width_max = max(len(idx) for _, idx, _ in panels)
     for row, (title, idx, ticks) in enumerate(panels):
         axw = fig.add_subplot(gs[row, 1])
@@ -227,11 +245,12 @@ def show_predictions(
     with torch.no_grad():
         pos, probs, out = predict(model, batch)
     if probs.ndim == 3:
-        pos, probs = marginal_to_joint(pos, probs)
+        pos, probs = marginal_to_joint(pos, probs, batch.get("agents_mask"))
     pos, probs = pos[0].numpy(), probs[0].numpy()  # (M, N, T, 2), (M,)
     gt = batch["gt"][0].numpy()  # (N, T, 2)
     hist = batch["history"][0].numpy()  # (H+1, N, 4)
-    N = pos.shape[1]
+    real = _real_agents(batch)  # padded agents are not drawn
+    N = len(real)
     show_weights = kind == "epo"
 
     fig = Figure(figsize=(14 if show_weights else 7.5, 8))
@@ -243,10 +262,10 @@ def show_predictions(
     else:
         ax = fig.add_subplot(1, 1, 1)
     _draw_scene(ax, game, batch, raw, agents, gt)
-    given_goals = batch["goals"][0].numpy() if "goals" in batch else None
-    decoded = _draw_modes(ax, out, pos, probs, hist, gt)
+    given_goals = batch["goals"][0].numpy()[real] if "goals" in batch else None
+    decoded = _draw_modes(ax, out, pos, probs, hist, gt, real)
     pts = np.concatenate(
-        [hist[..., :2].reshape(-1, 2), gt.reshape(-1, 2), pos.reshape(-1, 2)]
+        [hist[:, real, :2].reshape(-1, 2), gt[real].reshape(-1, 2), pos[:, real].reshape(-1, 2)]
         + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
     )
     _fit_view(ax, pts)
@@ -254,7 +273,7 @@ def show_predictions(
     info = [f"{split}[{index}]"] + [f"{k} {int(raw[k])}" for k in ("main_game", "step") if k in raw]
     ax.set_title(f"{label}: " + ", ".join(info), fontsize=11)
     if show_weights:
-        _draw_weights(fig, gs, out, game, raw, probs, agents)
+        _draw_weights(fig, gs, out, game, raw, probs, agents, set(real.tolist()))
     from scenarios.plotting import save_figure
 
     return save_figure(fig, Path(out_png), "out_png", dpi=100, bbox_inches="tight")

@@ -49,6 +49,14 @@ Solve and derivatives (:func:`solve_qp`, :class:`QPFunction`)
 default), decoders for the feature weights and the references (goal, reference speed)
 of every agent and mode, the QP layer, and the scene-probability decoder of the other
 scene models; trained with the scene loss like V-LSTM + SC.
+
+A padded agent (scene ``agents_mask`` False, :mod:`learning.masks`) starts from the neutral
+scene (at rest, far from every real agent), gets zero feature weights (only the
+:data:`WEIGHT_FLOOR` of its acceleration and turn rate, which keeps ``P`` positive definite),
+zero reference offsets (its goal is its position, its reference speed 0) and zero pair
+weights (the slack floor only): its own block of ``q`` is zero, its collision half-spaces are
+inactive (it is :data:`learning.masks.PAD_SPACING` away), so its controls are 0 and the real
+agents' problem is the one without it.
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.features import AccelerationBound, Collision, TurnRateBound, VelocityBound
 from epo_casadi.game import PotentialGame
 
+from . import masks as _masks
 from .models import _Base, mlp
 
 __all__ = [
@@ -579,6 +588,8 @@ class TGLModel(_Base):
         self.ref_dec = mlp(W, w, M * 3, norm="layer")
 
     def forward(self, scene: dict) -> dict:
+        scene = _masks.neutral_scene(scene)
+        mask = scene.get("agents_mask")  # only where the scene has a pad
         z = self.encoder(scene)
         B, M, N, K = z.shape[0], self.cfg.modes, self.N, self.K
         pr = self.problem
@@ -586,6 +597,11 @@ class TGLModel(_Base):
         w_own = self.own_dec(z).reshape(B, N, M, -1).permute(0, 2, 1, 3)  # (B, M, N, 5)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)[..., : self.n_pairs]
         ref = self.ref_dec(z).reshape(B, N, M, 3).permute(0, 2, 1, 3)  # (B, M, N, 3)
+        if mask is not None:  # a pad: zero weights and references (it stays at rest)
+            w_own = _masks.where_agents(mask, w_own, 0.0, agent_dim=2)
+            ref = _masks.where_agents(mask, ref, 0.0, agent_dim=2)
+            keep = _masks.pairs_mask(pr.pairs, mask)[:, None]
+            w_pair = torch.where(keep, w_pair, torch.zeros((), dtype=w_pair.dtype))
         heading = torch.stack([torch.cos(x0[..., 3]), torch.sin(x0[..., 3])], -1)
         cv_end = x0[..., :2] + K * pr.dt * x0[..., 2:3] * heading  # (B, N, 2)
         goals = cv_end[:, None] + ref[..., :2]

@@ -6,7 +6,8 @@ Optimizer and losses
     (:data:`PAPER_LOSS_WEIGHTS`): ours ``(1, 0.1, 0.1)``; V-LSTM + SC ``(1, 0, 1)``
     (``L_imit + L_prob``, Sec. 5); V-LSTM marginal: minADE + classification ``(1, -, 1)``.
     The goal loss is zero on RPI (goals are given). The networks train in float32; the game
-    layer solves in float64 inside and casts back (:mod:`learning.layer`).
+    layer solves in float64 inside and casts back (:mod:`learning.layer`). Padded agents
+    (the batch's ``agents_mask`` False, :mod:`learning.masks`) count in no loss term.
 
 A run directory (``out_dir``)::
 
@@ -250,16 +251,17 @@ def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
 # losses, records
 # --------------------------------------------------------------------------------------
 def compute_loss(
-    kind: str, out: dict, gt: torch.Tensor, weights: LossWeights
+    kind: str, out: dict, gt: torch.Tensor, weights: LossWeights, mask: torch.Tensor | None = None
 ) -> dict[str, torch.Tensor]:
     """The training loss of a model's output: scene loss (ours, SC) or marginal loss (V-LSTM),
     plus ``weights.goal`` times the goal loss when the model decodes goals (part ``goal``,
-    zero otherwise)."""
+    zero otherwise). ``mask`` ``(B, N)``: the batch's ``agents_mask``; every per-agent term
+    averages over its real agents only (:mod:`learning.losses`)."""
     if kind == "vlstm":
-        parts = marginal_loss(out["pos"], out["marginal_logits"], gt, weights)
+        parts = marginal_loss(out["pos"], out["marginal_logits"], gt, weights, mask=mask)
     else:
-        parts = scene_loss(out["pos"], out["logits"], gt, weights)
-    g = goal_loss(out, gt)
+        parts = scene_loss(out["pos"], out["logits"], gt, weights, mask=mask)
+    g = goal_loss(out, gt, mask)
     if g is None:
         parts["goal"] = torch.zeros((), dtype=parts["loss"].dtype)
     else:
@@ -533,7 +535,9 @@ def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float) -> dict | None
         return None
     with _diverged(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the model's output"):
         res = model(batch)
-    parts = compute_loss(cfg.model.kind, res, batch["gt"], cfg.loss_weights)
+    parts = compute_loss(
+        cfg.model.kind, res, batch["gt"], cfg.loss_weights, batch.get("agents_mask")
+    )
     loss = parts["loss"]
     if not torch.isfinite(loss):
         raise _diverged_error(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the loss")

@@ -249,7 +249,7 @@ def test_dataset_batches_memory_and_streaming_agree():
             assert (
                 x.keys()
                 == y.keys()
-                == {"history", "goals", "history_valid", "gt", "gt_states", "index"}
+                == {"history", "goals", "history_valid", "agents_mask", "gt", "gt_states", "index"}
             )
             for k in x:
                 torch.testing.assert_close(x[k], y[k], rtol=0, atol=0)
