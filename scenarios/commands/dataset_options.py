@@ -27,6 +27,8 @@ __all__ = [
 
 
 def cores() -> int:
+    """The usable cores (:func:`scenarios.files.usable_cores`; tests replace this to
+    pretend another machine)."""
     return usable_cores()
 
 
