@@ -38,9 +38,16 @@ Residual ``r(u, p)`` and energy (paper Eq. (6)-(7))
 Agent costs (the game)
     ``C_i(u, p) = own_i + sum_{j != i} pair_ij`` with ``own_i`` the energy of agent
     ``i``'s own blocks and ``pair_ij`` the energy of the pair blocks of ``{i, j}``. Pair
-    terms are shared by both agents, so ``C_i - E`` does not depend on ``u_i``: every
-    stationary point of ``E`` is stationary for each ``C_i`` in ``u_i``, and a minimizer of
-    ``E`` is an open-loop Nash equilibrium (paper Theorem C.1, App. C).
+    terms are shared by both agents, so, **when each agent's dynamics depend on its own
+    controls only** (no :class:`Coupling`), ``C_i - E`` (the other agents' own blocks and
+    their pairs without ``i``) does not depend on ``u_i``: every stationary point of ``E``
+    is stationary for each ``C_i`` in ``u_i``, and a minimizer of ``E`` is an open-loop
+    Nash equilibrium (paper Theorem C.1, App. C). With coupled dynamics
+    (``GameSpec(couplings=...)``, :attr:`PotentialGame.coupled`) an agent's controls move
+    another agent's state, ``C_i - E`` depends on ``u_i``, and a minimizer of ``E`` is in
+    general not a Nash equilibrium: the potential solvers say so in their result
+    (``SolveResult.equilibrium``, :class:`solvers.result.Equilibrium`), and the open-loop
+    Nash certificate (:mod:`solvers.nash`) tests the agents' own conditions.
 
 Batches
     Numeric arrays may carry leading batch dimensions: ``u`` as ``(B, n_u)``, ``p`` as

@@ -11,6 +11,7 @@ from .ipopt import IpoptOptions, IpoptSolver, solve_ipopt
 from .lm import LMOptions, solve_lm
 from .multimodal import MultiModalOptions, MultiModalResult, solve_multimodal
 from .nash import NashCertificate, NashOptions, nash_certificate
+from .olne import OLNEOptions, solve_olne
 from .registry import SOLVERS, SolverEntry, register_solver, solve_game, unregister_solver
 from .result import SolveResult, Status
 from .sqp import SQPOptions, SQPSolver, solve_sqp
@@ -31,6 +32,8 @@ __all__ = [
     "SolveResult",
     "Status",
     "nash_certificate",
+    "OLNEOptions",
+    "solve_olne",
     "solve_ipopt",
     "solve_lm",
     "SQPOptions",

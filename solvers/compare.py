@@ -34,6 +34,17 @@ Equilibrium check per solver (column ``check``)
     * ``none`` when the solve has no usable iterate (``nonfinite``, ``infeasible``,
       ``failed``) or checks are turned off.
 
+    Both are local by default. Column ``verdict``: ``passes``, ``fails`` (an improvement
+    found, or violated stationarity) or ``unknown`` (a best response that did not finish
+    and showed no gap), with ``check_note`` saying why for the agents that do not pass;
+    ``check_ok`` is "every agent passes" (``False`` for ``unknown`` too).
+
+What the point is (column ``equilibrium``)
+    The result's :class:`solvers.result.Equilibrium`: ``open-loop Nash``, ``feedback
+    Nash``, or ``potential minimum (coupled dynamics: not a Nash equilibrium)`` for LM,
+    IPOPT and SQP on a game with coupled dynamics, whose status may still be
+    ``converged`` (the potential's first-order tolerance holds).
+
 Energy gap
     ``gap = E - E_best`` with ``E_best`` the lowest finite energy of the game's rows with a
     usable status (``converged`` or ``max_iter``); rows of another status get a gap too
@@ -201,6 +212,7 @@ COLUMNS = (
     "solver",
     "init",
     "status",
+    "equilibrium",
     "energy",
     "gap",
     "iterations",
@@ -209,8 +221,10 @@ COLUMNS = (
     "solve_s",
     "check",
     "check_ok",
+    "verdict",
     "player_gain",
     "check_s",
+    "check_note",
     "message",
 )
 
@@ -234,6 +248,9 @@ class Row:
     player_gain: float
     check_s: float
     message: str
+    equilibrium: str = ""  #: the result's Equilibrium word ("" when the solver does not say)
+    verdict: str = ""  #: passes / fails / unknown ("" without a check)
+    check_note: str = ""  #: why agents fail or are unknown ("" when all pass)
     energy_history: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def cells(self) -> dict:
@@ -260,7 +277,11 @@ class Comparison:
 
     def _fmt(self, c: str, v) -> str:
         if c == "check_ok":
-            return "-" if v is None else ("yes" if v else "NO")
+            return "-" if v is None else ("yes" if v else "no")
+        if c == "verdict":
+            return {"": "-", "fails": "FAILS"}.get(v, v)
+        if c in ("equilibrium", "check_note") and not v:
+            return "-"
         if isinstance(v, float):
             if not math.isfinite(v):
                 return "nan" if math.isnan(v) else str(v)
@@ -311,9 +332,24 @@ def solve_with(choice: SolverChoice, game: PotentialGame, p: np.ndarray, u0: np.
 
 
 def _check(choice: SolverChoice, game: PotentialGame, p: np.ndarray, res):
-    """(check name, ok, largest player gain, seconds)."""
+    """(check name, ok, largest player gain, seconds, verdict, note)."""
     c = choice.entry.check(game, p, res)
-    return c.kind, c.ok, c.gain, c.seconds
+    detail = c.detail
+    verdict = str(getattr(detail, "verdict", "passes" if c.ok else "fails"))
+    return c.kind, c.ok, c.gain, c.seconds, verdict, _note(detail)
+
+
+def _note(detail) -> str:
+    """The reasons of the agents that do not pass, one phrase each (``""`` if all pass)."""
+    reasons = getattr(detail, "reasons", ()) or ()
+    names = getattr(detail, "agents", None) or [f"player {i}" for i in range(len(reasons))]
+    verdicts = getattr(detail, "verdicts", ()) or ()
+    parts = []
+    for i, r in enumerate(reasons):
+        if r:
+            v = f"{verdicts[i]}: " if i < len(verdicts) else ""
+            parts.append(f"{names[i]} {v}{r}")
+    return "; ".join(parts)
 
 
 def run_comparison(
@@ -397,12 +433,13 @@ def _one_row(gname, game, p, choice, init, setup_s, setup_err, check) -> Row:
         msg = f"{type(e).__name__}: {e}".splitlines()[0]
         return _failed_row(base, msg)
     st = res.status
-    name, ok, gain, cs = "none", None, math.nan, 0.0
+    name, ok, gain, cs, verdict, note = "none", None, math.nan, 0.0, "", ""
     if check and st in (Status.CONVERGED, Status.MAX_ITER, Status.STALLED):
         try:
-            name, ok, gain, cs = _check(choice, game, p, res)
+            name, ok, gain, cs, verdict, note = _check(choice, game, p, res)
         except Exception as e:  # noqa: BLE001
             name, ok = f"error: {type(e).__name__}", False
+            verdict, note = "unknown", f"the check raised {type(e).__name__}: {e}".splitlines()[0]
     return Row(
         **base,
         status=st.value,
@@ -416,6 +453,9 @@ def _one_row(gname, game, p, choice, init, setup_s, setup_err, check) -> Row:
         player_gain=gain,
         check_s=cs,
         message=_message(res),
+        equilibrium=str(getattr(res, "equilibrium", None) or ""),
+        verdict=verdict,
+        check_note=note,
         energy_history=np.asarray(res.energy_history, float).reshape(-1),
     )
 

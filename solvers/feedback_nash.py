@@ -24,15 +24,32 @@ from the game's initial states with the nonlinear dynamics; and evaluates every 
 cost. The largest decrease of the deviating player's own cost is its *gain*; the check
 passes when every player's gain is ``<= tol (1 + |C_i|)``.
 
-It is a sampled, local test: a passing check says that none of the tried deviations helps
-(a gradient of size ``g`` along a direction shows as a gain of about ``scale |g|``); it does
-not prove optimality. A policy shifted away from the equilibrium fails it.
+It is a sampled, **local** test: a passing check says that none of the tried deviations
+helps (a gradient of size ``g`` along a direction shows as a gain of about ``scale |g|``); it
+does not prove optimality, and it cannot see a better response behind a barrier (passing
+another player on the other side). A policy shifted away from the equilibrium fails it.
+
+Verdicts (:class:`solvers.result.Verdict`), per player and overall: ``fails`` when a
+deviation lowers the player's cost by more than the tolerance, or its cost under the
+policies is not finite; ``unknown`` when no deviation could be evaluated (none tried, or
+every deviated rollout non-finite); ``passes`` otherwise. ``ok`` is "every player passes".
+
+Global check (``global_starts = K``). From one initial state, the best a player can do
+against the others' *fixed policies* is the best open-loop control sequence (the system
+is deterministic, so any policy of the player is one sequence here). For each player the
+check minimizes its own closed-loop cost over that sequence with IPOPT (the others react
+through their gains ``P``, ``Q``; exact Hessian up to ``exact_hessian_max`` controls, else
+L-BFGS) from ``K`` starts: zero controls, then seeded normal draws times
+``global_scale``. A start that lowers the player's cost by more than the tolerance fails
+it, whether or not that solve converged; starts that find nothing leave the verdict as
+the sampled check found it. The starts run one after the other.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -41,6 +58,7 @@ from epo_casadi.errors import SpecError, check_number
 from epo_casadi.game import PotentialGame
 
 from .lm import check_options
+from .result import Verdict, combine_verdicts
 from .stages import to_stages
 
 __all__ = [
@@ -60,11 +78,25 @@ class FeedbackNashOptions:
     scales: tuple[float, ...] = (1e-3, 1e-2)  #: step sizes along every direction (both signs)
     tol: float = 1e-6  #: a player fails when its cost drops by more than tol (1 + |C_i|)
     seed: int = 0  #: seed of the random directions
+    global_starts: int = 0  #: best responses against the others' policies from this many starts
+    global_scale: float = 1.0  #: standard deviation of the drawn starts (control units)
+    global_seed: int = 0  #: seed of the drawn starts
+    max_iter: int = 300  #: IPOPT iterations per global best response
+    exact_hessian_max: int = 200  #: exact Hessian up to this many controls per player, then L-BFGS
 
     def __post_init__(self):
-        for name in ("n_random", "n_coordinate", "seed"):
+        for name in (
+            "n_random",
+            "n_coordinate",
+            "seed",
+            "global_starts",
+            "global_seed",
+            "max_iter",
+            "exact_hessian_max",
+        ):
             check_number(f"feedback_nash.{name}", getattr(self, name), lo=0, integer=True)
         check_number("feedback_nash.tol", self.tol, lo=0, lo_open=True)
+        check_number("feedback_nash.global_scale", self.global_scale, lo=0, lo_open=True)
         try:
             scales = tuple(float(s) for s in self.scales)
         except (TypeError, ValueError):
@@ -81,10 +113,17 @@ class FeedbackNashCheck:
     """Result of :func:`feedback_nash_check`.
 
     ``costs``: ``C_i`` under the given policies ``(N,)``; ``gain``: the largest decrease of
-    ``C_i`` found by player ``i``'s own deviations ``(N,)`` (``<= 0``: none helped);
-    ``ok_agent``: per player, ``gain <= tol (1 + |C_i|)``; ``trials``: deviations tried
-    per player; ``time_s``: wall time.
+    ``C_i`` found by player ``i``'s own deviations ``(N,)`` (``<= 0``: none helped; the
+    global best responses included when run); ``ok_agent``: per player, verdict
+    ``passes``; ``trials``: sampled deviations tried per player; ``time_s``: wall time;
+    ``verdicts`` / ``verdict``: per player and overall (module docstring); ``reasons``:
+    why a player fails or is unknown (``""`` where it passes); ``decided_by``: the test
+    that decided each player's verdict; ``global_starts``: starts of the global check per
+    player (0: local only); ``global_gain``: the largest decrease the global best
+    responses found ``(N,)`` (NaN without them).
     """
+
+    kind: ClassVar[str] = "feedback"
 
     ok: bool
     costs: np.ndarray
@@ -93,18 +132,110 @@ class FeedbackNashCheck:
     trials: int
     tol: float
     time_s: float
+    verdicts: tuple[Verdict, ...] = ()
+    verdict: Verdict = Verdict.PASSES
+    reasons: tuple[str, ...] = ()
+    decided_by: tuple[str, ...] = ()
+    global_starts: int = 0
+    global_gain: np.ndarray | None = None
 
     @property
     def max_relative_gain(self) -> float:
         return float(np.max(self.gain / (1.0 + np.abs(self.costs)))) if self.gain.size else 0.0
 
+    def scope(self) -> str:
+        """What the check searched: ``local, sampled`` or with ``K global starts``."""
+        k = self.global_starts
+        if not k:
+            return "LOCAL, sampled policy deviations"
+        return f"sampled policy deviations + {k} global start{'s' if k > 1 else ''} per player"
+
     def summary(self) -> str:
-        state = "passes" if self.ok else "FAILS"
+        state = {"passes": "passes", "fails": "FAILS", "unknown": "UNKNOWN"}[str(self.verdict)]
         per = ", ".join(f"{g:.3g}" for g in self.gain)
-        return (
-            f"feedback Nash check {state}: largest own-cost decrease per player [{per}] "
-            f"({self.trials} deviations each, tol {self.tol:g} (1 + |C_i|), {self.time_s:.2f} s)"
-        )
+        lines = [
+            f"feedback Nash check {state} ({self.scope()}): largest own-cost decrease per "
+            f"player [{per}] ({self.trials} deviations each, tol {self.tol:g} (1 + |C_i|), "
+            f"{self.time_s:.2f} s)"
+        ]
+        if not self.global_starts:
+            lines.append(
+                "  certifies a LOCAL feedback equilibrium: a better response in another "
+                "basin is not excluded (global_starts > 0 searches for one)"
+            )
+        for i, r in enumerate(self.reasons):
+            if r:
+                lines.append(f"  player {i}: {r}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (non-finite numbers as None)."""
+
+        def nums(a):
+            if a is None:
+                return None
+            return [float(x) if np.isfinite(x) else None for x in np.asarray(a, float).ravel()]
+
+        return {
+            "kind": self.kind,
+            "ok": bool(self.ok),
+            "verdict": str(self.verdict),
+            "verdicts": [str(v) for v in self.verdicts],
+            "reasons": list(self.reasons),
+            "decided_by": list(self.decided_by),
+            "costs": nums(self.costs),
+            "gain": nums(self.gain),
+            "ok_agent": [bool(x) for x in self.ok_agent],
+            "trials": int(self.trials),
+            "tol": float(self.tol),
+            "global_starts": int(self.global_starts),
+            "global_gain": nums(self.global_gain),
+            "time_s": float(self.time_s),
+        }
+
+
+def _loop(game: PotentialGame, prev: tuple[int, ...], player: int | None):
+    """Symbols and costs of the closed loop (see :func:`_closed_loop`); with ``player``,
+    that player's controls are a free sequence ``W (nu_i, K)`` instead of its policy."""
+    K = game.K
+    nx, nu = int(sum(game.nx)), int(sum(game.nu))
+    na = len(prev)
+    xo = np.concatenate([[0], np.cumsum(game.nx)]).astype(int)
+    uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
+    p = ca.SX.sym("p", game.n_p)
+    Xr = ca.SX.sym("Xr", nx, K + 1)
+    Ur = ca.SX.sym("Ur", nu, K)
+    Pg = ca.SX.sym("P", nu * nx, K)
+    a = ca.SX.sym("a", nu, K)
+    Qg = ca.SX.sym("Q", nu * na, K)
+    W = ca.SX.sym("W", 0 if player is None else int(game.nu[player]), K)
+    x = ca.vertcat(
+        *[
+            p[game.params[f"x0.{n}"].start : game.params[f"x0.{n}"].start + game.nx[i]]
+            for i, n in enumerate(game.agent_names)
+        ]
+    )
+    xs, us = [x], []
+    dy = ca.SX.zeros(na)  # Y_k - Y*_k, none at k = 0
+    for k in range(K):
+        Pk = ca.reshape(Pg[:, k], nx, nu).T  # row-major (nu, nx)
+        u = Ur[:, k] - ca.mtimes(Pk, x - Xr[:, k]) - a[:, k]
+        if na:
+            Qk = ca.reshape(Qg[:, k], na, nu).T  # row-major (nu, na)
+            u = u - ca.mtimes(Qk, dy)
+        if player is not None:  # the deviating player plays its own sequence
+            lo, hi = int(uo[player]), int(uo[player + 1])
+            u = ca.vertcat(u[:lo], W[:, k], u[hi:])
+        if na:
+            dy = ca.vertcat(u - Ur[:, k], x - Xr[:, k])[list(prev)]
+        x = game.stage_step(x, u)  # own dynamics, or a coupling's joint model
+        xs.append(x)
+        us.append(u)
+    # flat game layout (agent-major, then time)
+    xf = ca.vertcat(*[ca.vertcat(*[xk[xo[i] : xo[i + 1]] for xk in xs]) for i in range(game.N)])
+    uf = ca.vertcat(*[ca.vertcat(*[uk[uo[i] : uo[i + 1]] for uk in us]) for i in range(game.N)])
+    C = game.function("traj_agent_costs")(xf, uf, p)
+    return W, [p, Xr, Ur, Pg, a, Qg], C
 
 
 def _closed_loop(game: PotentialGame, prev: tuple[int, ...] = ()) -> ca.Function:
@@ -114,42 +245,39 @@ def _closed_loop(game: PotentialGame, prev: tuple[int, ...] = ()) -> ca.Function
     (``na = len(prev)``; their deviation is zero at ``k = 0``)."""
 
     def build():
-        K = game.K
-        nx, nu = int(sum(game.nx)), int(sum(game.nu))
-        na = len(prev)
-        xo = np.concatenate([[0], np.cumsum(game.nx)]).astype(int)
-        uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
-        p = ca.SX.sym("p", game.n_p)
-        Xr = ca.SX.sym("Xr", nx, K + 1)
-        Ur = ca.SX.sym("Ur", nu, K)
-        Pg = ca.SX.sym("P", nu * nx, K)
-        a = ca.SX.sym("a", nu, K)
-        Qg = ca.SX.sym("Q", nu * na, K)
-        x = ca.vertcat(
-            *[
-                p[game.params[f"x0.{n}"].start : game.params[f"x0.{n}"].start + game.nx[i]]
-                for i, n in enumerate(game.agent_names)
-            ]
-        )
-        xs, us = [x], []
-        dy = ca.SX.zeros(na)  # Y_k - Y*_k, none at k = 0
-        for k in range(K):
-            Pk = ca.reshape(Pg[:, k], nx, nu).T  # row-major (nu, nx)
-            u = Ur[:, k] - ca.mtimes(Pk, x - Xr[:, k]) - a[:, k]
-            if na:
-                Qk = ca.reshape(Qg[:, k], na, nu).T  # row-major (nu, na)
-                u = u - ca.mtimes(Qk, dy)
-                dy = ca.vertcat(u - Ur[:, k], x - Xr[:, k])[list(prev)]
-            x = game.stage_step(x, u)  # own dynamics, or a coupling's joint model
-            xs.append(x)
-            us.append(u)
-        # flat game layout (agent-major, then time)
-        xf = ca.vertcat(*[ca.vertcat(*[xk[xo[i] : xo[i + 1]] for xk in xs]) for i in range(game.N)])
-        uf = ca.vertcat(*[ca.vertcat(*[uk[uo[i] : uo[i + 1]] for uk in us]) for i in range(game.N)])
-        C = game.function("traj_agent_costs")(xf, uf, p)
-        return ca.Function("closed_loop_costs", [p, Xr, Ur, Pg, a, Qg], [C])
+        _, ins, C = _loop(game, prev, None)
+        return ca.Function("closed_loop_costs", ins, [C])
 
     return game.cached(("feedback_nash_closed_loop", tuple(prev)), build)
+
+
+def _best_response_nlp(game: PotentialGame, prev: tuple[int, ...], i: int, opts) -> ca.Function:
+    """IPOPT on player ``i``'s closed-loop cost over its own control sequence ``W``
+    (``x = vec(W)``, time-major), the others on their policies; NLP parameters: the
+    closed loop's inputs, each flattened column-major and stacked."""
+    exact = int(game.nu[i]) * game.K <= opts.exact_hessian_max
+
+    def build():
+        W, ins, C = _loop(game, prev, i)
+        par = ca.vertcat(*[ca.vec(v) for v in ins])
+        nlp_opts = {
+            "print_time": False,
+            "error_on_fail": False,
+            "show_eval_warnings": False,
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            "ipopt.max_iter": opts.max_iter,
+            "ipopt.tol": 1e-10,
+            "ipopt.nlp_scaling_method": "none",
+        }
+        if not exact:
+            nlp_opts["ipopt.hessian_approximation"] = "limited-memory"
+        return ca.nlpsol(
+            f"feedback_best_response_{i}", "ipopt", {"x": ca.vec(W), "p": par, "f": C[i]}, nlp_opts
+        )
+
+    key = ("feedback_nash_best_response", tuple(prev), i, opts.max_iter, exact)
+    return game.cached(key, build)
 
 
 def feedback_nash_check(
@@ -210,6 +338,7 @@ def feedback_nash_check(
     uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
     rng = np.random.default_rng(opts.seed)
     gain = np.full(N, -np.inf)
+    evaluated = np.zeros(N, dtype=int)  # deviations with a finite cost, per player
     trials = 0
     for i in range(N):
         rows = slice(int(uo[i]), int(uo[i + 1]))
@@ -231,19 +360,99 @@ def feedback_nash_check(
                     c = costs(P + sign * s * dP, a + sign * s * da, Q + sign * s * dQ)
                     trials += 1
                     drop = base[i] - c[i] if np.isfinite(c[i]) else -np.inf
+                    evaluated[i] += bool(np.isfinite(c[i]))
                     gain[i] = max(gain[i], drop)
     gain = np.where(np.isfinite(gain), gain, 0.0)
-    per = gain <= opts.tol * (1.0 + np.abs(base))
-    ok_agent = per & np.isfinite(base)
+    limit = opts.tol * (1.0 + np.abs(base))
+    glob = np.full(N, np.nan)
+    glob_by = [""] * N
+    if opts.global_starts:
+        par = np.concatenate(
+            [
+                np.ravel(v, order="F")
+                for v in (p, Xr, Ur, P.reshape(K, nu * nx).T, a.T, Q.reshape(K, nu * na).T)
+            ]
+        )
+        for i in range(N):
+            if np.isfinite(base[i]):
+                glob[i], glob_by[i] = _global_best_responses(
+                    game, tuple(int(v) for v in prev), i, par, base[i], limit[i], opts
+                )
+    verdicts, reasons, decided = [], [], []
+    for i in range(N):
+        if not np.isfinite(base[i]):
+            verdicts.append(Verdict.FAILS)
+            reasons.append("the cost under the policies is not finite")
+            decided.append("finite values")
+        elif gain[i] > limit[i]:
+            verdicts.append(Verdict.FAILS)
+            reasons.append(
+                f"a sampled deviation of its own policy lowers C_i by {gain[i]:.3g} > tol "
+                f"(1 + |C_i|) = {limit[i]:.3g}"
+            )
+            decided.append("sampled policy deviation")
+        elif np.isfinite(glob[i]) and glob[i] > limit[i]:
+            verdicts.append(Verdict.FAILS)
+            reasons.append(
+                f"a best response against the others' policies ({glob_by[i]}) lowers C_i by "
+                f"{glob[i]:.3g} > tol (1 + |C_i|) = {limit[i]:.3g}"
+            )
+            decided.append(glob_by[i])
+        elif evaluated[i] == 0 and not np.isfinite(glob[i]):
+            verdicts.append(Verdict.UNKNOWN)
+            reasons.append(
+                "no deviation could be evaluated (none tried, or every deviated rollout is "
+                "not finite): no evidence either way"
+            )
+            decided.append("none")
+        else:
+            verdicts.append(Verdict.PASSES)
+            reasons.append("")
+            decided.append(
+                "sampled policy deviations"
+                + (f" + {opts.global_starts} global starts" if opts.global_starts else "")
+            )
+    if opts.global_starts:
+        gain = np.where(np.isfinite(glob), np.maximum(gain, glob), gain)
+    ok_agent = np.array([v is Verdict.PASSES for v in verdicts], dtype=bool)
+    verdict = combine_verdicts(verdicts)
     return FeedbackNashCheck(
-        ok=bool(ok_agent.all()),
+        ok=verdict is Verdict.PASSES,
         costs=base,
         gain=gain,
         ok_agent=ok_agent,
         trials=trials // max(N, 1),
         tol=opts.tol,
         time_s=time.perf_counter() - t0,
+        verdicts=tuple(verdicts),
+        verdict=verdict,
+        reasons=tuple(reasons),
+        decided_by=tuple(decided),
+        global_starts=opts.global_starts,
+        global_gain=glob if opts.global_starts else None,
     )
+
+
+def _global_best_responses(game, prev, i, par, base_i, limit_i, opts) -> tuple[float, str]:
+    """Player ``i``'s best responses (its own control sequence, the others on their
+    policies) from ``global_starts`` starts: the largest decrease of ``C_i`` found and the
+    start that found it; stops at the first decrease above ``limit_i``."""
+    solver = _best_response_nlp(game, prev, i, opts)
+    n = int(game.nu[i]) * game.K
+    rng = np.random.default_rng([opts.global_seed, i])
+    best, by = -np.inf, ""
+    for s in range(opts.global_starts):
+        x0 = np.zeros(n) if s == 0 else opts.global_scale * rng.standard_normal(n)
+        sol = solver(x0=x0, p=par)
+        st = str(solver.stats().get("return_status", "unknown"))
+        c = float(sol["f"])
+        drop = base_i - c if np.isfinite(c) else -np.inf
+        if drop > best:
+            where = "zero controls" if s == 0 else "seeded draw"
+            best, by = drop, f"global start {s} ({where}), ipopt: {st}"
+        if best > limit_i:
+            break
+    return (best if np.isfinite(best) else np.nan), by
 
 
 def check_ilq_result(

@@ -21,7 +21,10 @@ time. Shapes and index order follow
 loop over its problems.
 
 Without bounds the solution is a local minimizer of ``E`` and hence (paper Theorem C.1) a local
-open-loop Nash equilibrium; check it with :func:`solvers.nash.nash_certificate`.
+open-loop Nash equilibrium when each agent's dynamics depend on its own controls only; check
+it with :func:`solvers.nash.nash_certificate`. With coupled dynamics (``game.coupled``) the
+result's ``equilibrium`` says ``potential minimum (coupled dynamics: not a Nash
+equilibrium)`` (:class:`solvers.result.Equilibrium`).
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from epo_casadi.game import PotentialGame
 from .batch import BatchFunction
 from .codegen import cache_dir
 from .lm import MAX_STEPS, check_options
-from .result import SolveResult, Status, demote_nonfinite
+from .result import SolveResult, Status, demote_nonfinite, potential_equilibrium
 
 __all__ = ["IpoptOptions", "IpoptSolver", "solve_ipopt", "ipopt_status"]
 
@@ -342,6 +345,7 @@ class IpoptSolver:
                 "setup_s": self.setup_s,
                 "setup_source": self.setup_source,
             },
+            equilibrium=potential_equilibrium(game.coupled),
         )
         return res[0] if single else res
 

@@ -20,6 +20,11 @@ batch (about 7x faster for N = 2, K = 40 in a batch of 64; ``bench/bench_lm.py``
 The same backend is reused by the differentiable layer to solve with the same matrix
 in its backward pass.
 
+A minimizer of ``E`` is a local open-loop Nash equilibrium only when every agent's
+dynamics depend on its own controls only (:mod:`epo_casadi.game`); for a game with coupled
+dynamics the result says ``equilibrium = potential minimum (coupled dynamics: not a Nash
+equilibrium)`` (:class:`solvers.result.Equilibrium`), whatever its status.
+
 Shapes follow :mod:`epo_casadi.game`.
 """
 
@@ -35,7 +40,7 @@ from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
 from .gn import DenseGN, Linearization  # the shared backend piece, one level down
-from .result import SolveResult, Status, StopReason, demote_nonfinite
+from .result import SolveResult, Status, StopReason, demote_nonfinite, potential_equilibrium
 
 __all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options", "MAX_STEPS"]
 
@@ -360,6 +365,7 @@ def _lm_result(s: _LMState, game: PotentialGame, opts: LMOptions, cos, wall) -> 
             "residual_cosine": cos,
             "options": opts,
         },
+        equilibrium=potential_equilibrium(game.coupled),
     )
 
 
@@ -451,3 +457,14 @@ def _merge(old: Linearization, new: Linearization, keep: np.ndarray) -> Lineariz
 
 def _rollout(game: PotentialGame, U, P, threads=None) -> np.ndarray:
     return batch_function(game, "rollout", threads)(U, P)[0]
+
+
+def prepare_lm(game: PotentialGame, p, u0, o: LMOptions) -> None:
+    """Build and evaluate once what a solve reuses (``epo compare``'s ``setup_s``): the
+    backend's linearization and energy, the batched rollout and agent costs."""
+    be = make_backend(game, o)
+    U, P = game.check_inputs(u0, p)
+    be.linearize(U, P)
+    be.energy(U, P)
+    batch_function(game, "rollout", o.threads)(U, P)
+    batch_function(game, "agent_costs", o.threads)(U, P)

@@ -1,4 +1,4 @@
-"""A *local* certificate that a joint strategy is an open-loop Nash equilibrium.
+"""A certificate that a joint strategy is an open-loop Nash equilibrium: local by default.
 
 An open-loop Nash equilibrium (OLNE, paper Def. 3.1) is a joint strategy ``u*`` with
 ``C_i(u*) <= C_i(u_i, u*_{-i})`` for every agent ``i`` and every ``u_i``. The agent costs
@@ -8,25 +8,55 @@ involve ``i``). For each agent, :func:`nash_certificate` measures
 * **stationarity** ``s_i = |dC_i/du_i (u, p)|_inf``, from the game's ``pseudo_gradient``
   function: first-order optimality of agent ``i``'s problem with the others fixed;
 * **best-response gap** ``gap_i = C_i(u) - min_{u_i} C_i(u_i, u_{-i})``, where the minimum
-  is a *local* IPOPT solve of agent ``i``'s own problem (the others' controls fixed),
-  warm-started at the given ``u_i``. The gap is ``>= 0`` by construction: when IPOPT
-  ends above ``C_i(u)`` the given ``u_i`` is its own best known response.
+  is a *local* solve of agent ``i``'s own problem (the others' controls fixed),
+  warm-started at the given ``u_i``. The gap is ``>= 0`` by construction: when the
+  solve ends above ``C_i(u)`` the given ``u_i`` is its own best known response.
 
 Tolerances. Both tests are relative to a *bounded* scale
 ``S_i = 1 + min(|C_i|, scale_cap)``: ``s_i <= stat_tol S_i`` and ``gap_i <= gap_tol S_i``.
 The cap keeps a huge cost from excusing a huge gradient (a failed solve with
-``C_i = 2e204`` and ``s_i = 3e103`` passes a plain relative test). An agent also fails
-when its cost or stationarity is not finite, and when its best-response solve stopped
-without converging (IPOPT status other than ``Solve_Succeeded`` /
-``Solved_To_Acceptable_Level``) unless the point it reached already shows a gap above
-the tolerance: a failed best response is no evidence of a small gap.
-:attr:`NashCertificate.reasons` says, per agent, why it fails.
+``C_i = 2e204`` and ``s_i = 3e103`` passes a plain relative test).
 
-This is a **local** certificate: a small gap says that no agent can improve by a
-unilateral deviation that IPOPT finds from the current point; it does not exclude a
-better response in another basin of the non-convex ``C_i`` (e.g. passing a pedestrian on
-the other side). Bounds are not taken into account: the certificate is for the
-unconstrained (soft-penalty) game of the paper.
+Verdicts (:class:`solvers.result.Verdict`), per agent and overall
+    * ``fails`` on evidence only: stationarity above its tolerance, a cost or gradient
+      that is not finite, or a best response that **found** a lower ``C_i`` (a gap above
+      the tolerance, whether or not that solve converged);
+    * ``unknown`` when no best-response method finished (iteration cap, IPOPT's
+      ``Search_Direction_Becomes_Too_Small``, L-BFGS stopping early, ...) and none showed
+      a gap: a solve that stopped early is no evidence either way;
+    * ``passes`` otherwise. The overall verdict is ``fails`` if an agent fails, else
+      ``unknown`` if one is unknown, else ``passes``; :attr:`NashCertificate.ok` is
+      "every agent passes".
+
+Best responses, in order until one decides (:attr:`NashCertificate.decided_by` names it)
+    1. IPOPT on ``C_i`` over ``u_i``, warm-started at the candidate, without objective
+       scaling (``nlp_scaling_method none``: the tolerance is on ``C_i`` itself), with the
+       exact Hessian for agents with ``n_i <= exact_hessian_max`` controls, else L-BFGS;
+    2. when it stops without converging and without a gap, and the agent passes its
+       stationarity test (else it fails anyway; ``fallback=True``):
+       Levenberg-Marquardt on the agent's own residual rows (``C_i = 1/2 ||r_i||^2``, the
+       rows of its own terms and of the pair terms that involve it), from the better of
+       the candidate and the point IPOPT reached; it converges when
+       ``|dC_i/du_i|_inf <= tol S_i``. Where it stops short of that (its decreases fall
+       below round-off, its iteration cap), a Newton test at its point decides: the
+       Hessian of ``C_i`` by central differences of the game's ``pseudo_gradient``
+       positive definite, the Newton step small and its predicted decrease below
+       ``gap_tol S_i / 100``.
+
+    Agents with ``n_i > best_response_max`` get the stationarity test only (their
+    verdict rests on it; the table says so), as do all with ``best_response=False``.
+
+Local and global
+    By default this is a **local** certificate: a small gap says that no agent can improve
+    by a unilateral deviation that a descent method finds from the current point; it does
+    not exclude a better response in another basin of the non-convex ``C_i`` (e.g. passing
+    another agent on the other side). ``global_starts = K`` adds, per agent, best
+    responses (IPOPT, then the fallback) from ``K`` more starts, the others' controls
+    fixed: zero controls, then ``K - 1`` seeded normal draws times ``global_scale``. A
+    start that finds a lower cost fails the agent; starts that find nothing leave the
+    verdict as the local check found it (a sampled search, not a proof). The starts run one
+    after the other. Bounds are not taken into account: the certificate is for the
+    unconstrained (soft-penalty) game of the paper.
 
 Cost. Each agent's best-response NLP is built once per game and options (parameters:
 ``p`` and the others' controls) and cached. Its Hessian decides the cost: an exact Hessian
@@ -34,18 +64,21 @@ of a single-shooting problem is dense and its symbolic build grows quickly with 
 agent's control count ``n_i = K nu_i`` (1 s at ``n_i = 200``, 8 s at 400, minutes at
 1,000). So agents with ``n_i <= exact_hessian_max`` get the exact Hessian, larger ones a
 limited-memory (L-BFGS) Hessian that needs only the gradient, and agents with
-``n_i > best_response_max`` get the stationarity test only; the table says which.
+``n_i > best_response_max`` get the stationarity test only; the table says which. The
+fallback's residual Jacobian is built only when the fallback runs.
 :attr:`NashCertificate.time_s` is the certificate's own wall time, and long checks show a
 progress bar on a terminal (tqdm).
 
 For a potential game every local minimizer of ``E`` passes (Theorem 1); a strategy
-perturbed for one agent fails on that agent.
+perturbed for one agent fails on that agent. For a game with coupled dynamics a minimizer
+of ``E`` is in general not an equilibrium, and the certificate fails it.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, fields, replace
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -53,12 +86,20 @@ import numpy as np
 from epo_casadi.errors import SpecError, check_bool, check_number
 from epo_casadi.game import PotentialGame
 
+from .codegen import BufferCall
 from .lm import check_options
+from .result import Verdict, combine_verdicts
 
 __all__ = ["NashOptions", "NashCertificate", "NashChecker", "nash_certificate"]
 
 #: IPOPT statuses after which a best response counts as evidence of the gap
 CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: what each best-response method is called in the table and in ``decided_by``
+METHOD_NAMES = {
+    "exact": "ipopt (exact Hessian)",
+    "l-bfgs": "ipopt (L-BFGS)",
+    "lm": "lm (agent residuals)",
+}
 
 
 @dataclass(frozen=True)
@@ -71,78 +112,115 @@ class NashOptions:
     best_response: bool = True  #: solve the best responses (False: stationarity only, gaps 0)
     exact_hessian_max: int = 200  #: exact Hessian up to this many controls per agent, then L-BFGS
     best_response_max: int = 600  #: agents with more controls get the stationarity test only
-    max_iter: int = 300  #: IPOPT iterations per best response
-    tol: float = 1e-10  #: IPOPT tolerance of the best responses
+    max_iter: int = 300  #: iterations per best-response solve (IPOPT, and the fallback's LM)
+    tol: float = 1e-10  #: IPOPT tolerance of the best responses; the fallback's: tol * S_i
+    fallback: bool = True  #: LM on the agent's residuals when IPOPT stops early without a gap
+    global_starts: int = 0  #: more starts per agent: zero controls, then seeded draws (0: local)
+    global_scale: float = 1.0  #: standard deviation of the drawn starts (control units)
+    global_seed: int = 0  #: seed of the drawn starts
 
     def __post_init__(self):
-        for name in ("stat_tol", "gap_tol", "tol", "scale_cap"):
+        for name in ("stat_tol", "gap_tol", "tol", "scale_cap", "global_scale"):
             check_number(f"nash.{name}", getattr(self, name), lo=0, lo_open=True)
-        for name in ("max_iter", "exact_hessian_max", "best_response_max"):
+        for name in (
+            "max_iter",
+            "exact_hessian_max",
+            "best_response_max",
+            "global_starts",
+            "global_seed",
+        ):
             check_number(f"nash.{name}", getattr(self, name), lo=0, integer=True)
         check_bool("nash.best_response", self.best_response)
+        check_bool("nash.fallback", self.fallback)
 
 
 @dataclass(frozen=True, eq=False)
 class NashCertificate:
-    """Per-agent evidence for (or against) a local open-loop Nash equilibrium.
+    """Per-agent evidence for (or against) an open-loop Nash equilibrium (local unless
+    ``options.global_starts > 0``).
 
     Arrays have one entry per agent, in the order of :attr:`agents`.
     """
 
+    kind: ClassVar[str] = "open-loop"
+
     agents: tuple[str, ...]  #: agent names
     costs: np.ndarray  #: C_i(u, p), (N,)
     stationarity: np.ndarray  #: |dC_i/du_i|_inf, (N,)
-    best_response_costs: np.ndarray  #: min over u_i found by IPOPT (C_i where not improved), (N,)
+    best_response_costs: np.ndarray  #: lowest C_i any best response found (C_i if none lower), (N,)
     best_response_gap: np.ndarray  #: C_i(u) - best_response_costs >= 0, (N,)
     relative_gap: np.ndarray  #: best_response_gap / S_i, (N,)
     best_response_status: tuple[
         str, ...
-    ]  #: IPOPT return status per agent ("skipped" if not solved)
+    ]  #: IPOPT's return status from the candidate, per agent ("skipped" if not solved)
     best_response_method: tuple[
         str, ...
     ]  #: "exact" / "l-bfgs" Hessian, or "off" / "too large" (stationarity only), per agent
     stat_ok: np.ndarray  #: stationarity finite and within tolerance, (N,) bool
-    gap_ok: np.ndarray  #: gap within tolerance and backed by a converged solve, (N,) bool
-    reasons: tuple[str, ...]  #: why each agent fails ("" where it passes)
-    ok: bool  #: every agent passes both tests
+    gap_ok: np.ndarray  #: no gap found, and a best response that finished (or none run), (N,) bool
+    reasons: tuple[str, ...]  #: why each agent fails or is unknown ("" where it passes)
+    ok: bool  #: every agent passes (verdict "passes")
     time_s: float  #: wall time of the certificate (on first use, with building its functions)
     options: NashOptions
+    verdicts: tuple[Verdict, ...] = ()  #: per agent: passes / fails / unknown
+    verdict: Verdict = Verdict.PASSES  #: fails if one fails, else unknown if one is, else passes
+    decided_by: tuple[str, ...] = ()  #: per agent, the test or method that decided its verdict
+    global_best_costs: np.ndarray | None = None  #: lowest C_i from the global starts (NaN: none)
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (non-finite numbers as None)."""
-        d = {}
+        d = {"kind": self.kind}
         for f in fields(self):
             k, v = f.name, getattr(self, f.name)
             if isinstance(v, np.ndarray):
                 v = [x if not isinstance(x, float) or np.isfinite(x) else None for x in v.tolist()]
             elif isinstance(v, tuple):
-                v = list(v)
+                v = [str(x) for x in v] if k == "verdicts" else list(v)
             elif isinstance(v, NashOptions):
                 v = asdict(v)
+            elif isinstance(v, Verdict):
+                v = v.value
             elif isinstance(v, (np.bool_, np.floating)):
                 v = v.item()
             d[k] = v
         return d
 
+    def scope(self) -> str:
+        """What the certificate searched: ``local`` or ``local + K global starts``."""
+        k = self.options.global_starts
+        return "local" if not k else f"local + {k} global start{'s' if k > 1 else ''} per agent"
+
     def summary(self) -> str:
-        """A text table, one row per agent, the verdict and the reasons of failures."""
+        """A text table, one row per agent, the verdict, what decided it and the reasons."""
+        o = self.options
+        if o.global_starts:
+            title = (
+                f"open-loop Nash certificate, {self.scope()} (zero controls and seeded draws "
+                "against the others' fixed controls): a sampled search beyond the local one"
+            )
+        else:
+            title = (
+                "local open-loop Nash certificate: certifies a LOCAL equilibrium (best "
+                "responses from the candidate; global_starts > 0 searches other basins)"
+            )
         head = (
             f"{'agent':>10s} {'C_i':>12s} {'|dC_i/du_i|':>12s} {'gap':>12s} {'rel. gap':>10s}"
-            f" {'best resp.':>10s}  ok"
+            f" {'best resp.':>10s}  {'verdict':<8s} decided by"
         )
-        lines = ["local open-loop Nash certificate", head]
+        lines = [title, head]
         for i, a in enumerate(self.agents):
-            ok = "yes" if (self.stat_ok[i] and self.gap_ok[i]) else "NO"
+            v = self.verdicts[i] if self.verdicts else ("passes" if self.ok else "fails")
+            word = {"passes": "passes", "fails": "FAILS", "unknown": "unknown"}[str(v)]
+            by = self.decided_by[i] if self.decided_by else ""
             lines.append(
                 f"{a:>10s} {self.costs[i]:12.6g} {self.stationarity[i]:12.3g} "
                 f"{self.best_response_gap[i]:12.3g} {self.relative_gap[i]:10.3g}"
-                f" {self.best_response_method[i]:>10s}  {ok}"
+                f" {self.best_response_method[i]:>10s}  {word:<8s} {by}"
             )
-        o = self.options
-        verdict = "passes" if self.ok else "FAILS"
+        verdict = {"passes": "passes", "fails": "FAILS", "unknown": "UNKNOWN"}[str(self.verdict)]
         lines.append(
-            f"{verdict} (stat_tol {o.stat_tol:g}, gap_tol {o.gap_tol:g}, relative to "
-            f"1 + min(|C_i|, {o.scale_cap:g})) in {self.time_s:.3g} s"
+            f"{verdict} ({self.scope()}; stat_tol {o.stat_tol:g}, gap_tol {o.gap_tol:g}, "
+            f"relative to 1 + min(|C_i|, {o.scale_cap:g})) in {self.time_s:.3g} s"
         )
         skipped = [
             a
@@ -164,6 +242,21 @@ class NashCertificate:
         return "\n".join(lines)
 
 
+@dataclass
+class _Attempt:
+    """One best-response solve: method, its stop, whether it finished, the cost reached."""
+
+    method: str  #: "exact", "l-bfgs" or "lm"
+    status: str  #: IPOPT's return status, or LM's stop ("gtol", "max_iter", ...)
+    converged: bool
+    cost: float  #: C_i at the point reached (NaN if not finite)
+    controls: np.ndarray  #: u_i at the point reached
+
+    @property
+    def label(self) -> str:
+        return f"{METHOD_NAMES[self.method]}: {self.status}"
+
+
 class NashChecker:
     """Best-response NLPs of every agent of one game, built once (see the module doc)."""
 
@@ -175,6 +268,9 @@ class NashChecker:
         self._costs = game.function("agent_costs")
         self._pg = game.function("pseudo_gradient")
         self._br: dict[int, ca.Function] = {}
+        self._lm: dict[int, ca.Function] = {}
+        self._calls: dict[int, BufferCall] = {}  # the residual functions, on numpy buffers
+        self._pg_call: BufferCall | None = None
 
     def method(self, i: int) -> str:
         """How agent ``i``'s best response is found: ``exact``, ``l-bfgs``, ``off``, ``too large``."""
@@ -186,15 +282,19 @@ class NashChecker:
             return "too large"
         return "exact" if n <= o.exact_hessian_max else "l-bfgs"
 
+    def _agent_symbols(self, i: int):
+        """``(u_i, [p; u_{-i}], u)`` symbols of agent ``i``'s problem."""
+        g = self.game
+        a, b = int(g.uoff[i]), int(g.uoff[i + 1])
+        ui = ca.SX.sym("u_i", b - a)
+        uo = ca.SX.sym("u_others", g.n_u - (b - a))
+        p = ca.SX.sym("p", g.n_p)
+        return ui, ca.vertcat(p, uo), p, ca.vertcat(uo[:a], ui, uo[a:])
+
     def best_response_nlp(self, i: int) -> ca.Function:
         """IPOPT solver of agent ``i``: ``x = u_i``, ``p = [p; u_{-i}]``, ``f = C_i``."""
         if i not in self._br:
-            g = self.game
-            a, b = int(g.uoff[i]), int(g.uoff[i + 1])
-            ui = ca.SX.sym("u_i", b - a)
-            uo = ca.SX.sym("u_others", g.n_u - (b - a))
-            p = ca.SX.sym("p", g.n_p)
-            u = ca.vertcat(uo[:a], ui, uo[a:])
+            ui, par, p, u = self._agent_symbols(i)
             Ci = self._costs(u, p)[i]
             opts = {
                 "print_time": False,
@@ -204,13 +304,33 @@ class NashChecker:
                 "ipopt.sb": "yes",
                 "ipopt.max_iter": self.options.max_iter,
                 "ipopt.tol": self.options.tol,
+                # the tolerance is on C_i itself: no gradient-based objective scaling
+                "ipopt.nlp_scaling_method": "none",
             }
             if self.method(i) == "l-bfgs":
                 opts["ipopt.hessian_approximation"] = "limited-memory"
             self._br[i] = ca.nlpsol(
-                f"best_response_{i}", "ipopt", {"x": ui, "p": ca.vertcat(p, uo), "f": Ci}, opts
+                f"best_response_{i}", "ipopt", {"x": ui, "p": par, "f": Ci}, opts
             )
         return self._br[i]
+
+    def residual_function(self, i: int) -> ca.Function:
+        """``(u_i, [p; u_{-i}]) -> (r_i, J_i)``: agent ``i``'s own residual rows (its own
+        terms and the pair terms that involve it; ``C_i = 1/2 ||r_i||^2``) and their dense
+        Jacobian in ``u_i``, for the fallback's Levenberg-Marquardt."""
+        if i not in self._lm:
+            g = self.game
+            ui, par, p, u = self._agent_symbols(i)
+            name = g.agent_names[i]
+            rows = [
+                k for t in g.terms if name in t.agents for k in range(t.rows.start, t.rows.stop)
+            ]
+            r = g.function("residual")(u, p)[rows] if rows else ca.SX(0, 1)
+            J = ca.densify(ca.jacobian(r, ui))
+            self._lm[i] = ca.Function(
+                f"agent_residual_{i}", [ui, par], [r, J], ["u_i", "p"], ["r", "J"]
+            )
+        return self._lm[i]
 
     def certify(self, p: np.ndarray, u: np.ndarray) -> NashCertificate:
         """Certificate for one problem: ``p`` ``(n_p,)``, ``u`` ``(n_u,)`` (the order of
@@ -238,34 +358,71 @@ class NashChecker:
         stat_ok = finite & (stat <= o.stat_tol * scale)
         br = C.copy()
         gap_ok = finite.copy()
-        statuses, reasons = [], []
+        glob = np.full(g.N, np.nan)
+        statuses, reasons, verdicts, decided = [], [], [], []
         todo = [i for i in range(g.N) if finite[i] and methods[i] in ("exact", "l-bfgs")]
         bar = self._progress(todo)
         for i in range(g.N):
             why = self._first_order_reasons(i, finite_in, finite, stat_ok, stat, scale)
+            fails = bool(why)
+            by = "" if finite[i] else "finite values"
+            if finite[i] and not stat_ok[i]:
+                by = "stationarity"
             if i not in todo:
                 statuses.append("skipped")
                 reasons.append("; ".join(why))
+                verdicts.append(Verdict.FAILS if fails else Verdict.PASSES)
+                decided.append(by or "stationarity only")
                 continue
-            st, cand = self._best_response(i, u, p)
-            statuses.append(st)
-            if np.isfinite(cand):
-                br[i] = min(C[i], cand)
+            tol_i = o.gap_tol * scale[i]
+            local = self._local_attempts(i, u, p, C[i], tol_i, scale[i], fallback=not fails)
+            statuses.append(local[0].status)
+            found = [t for t in local if C[i] - t.cost > tol_i]
+            finished = [t for t in local if t.converged]
+            searched = o.global_starts and not (found or fails)  # else already failing
+            starts = self._global_attempts(i, u, p, C[i], tol_i, scale[i]) if searched else []
+            if starts:
+                glob[i] = min((c for _, t in starts if np.isfinite(c := t.cost)), default=np.nan)
+            costs = [t.cost for t in local] + [t.cost for _, t in starts]
+            finite_costs = [c for c in costs if np.isfinite(c)]
+            if finite_costs:
+                br[i] = min(C[i], *finite_costs)
             gap_i = C[i] - br[i]
-            if gap_i > o.gap_tol * scale[i]:
+            found_global = [(s, t) for s, t in starts if C[i] - t.cost > tol_i]
+            if found or found_global:
                 gap_ok[i] = False
+                fails = True
+                if found:
+                    src = found[0].label
+                else:
+                    s, t = found_global[0]
+                    src = f"global start {s} ({'zero controls' if s == 0 else 'seeded draw'}), {t.label}"
                 why.append(
-                    f"best response lowers C_i by {gap_i:.3g} > gap_tol x (1 + min(|C_i|, "
-                    f"scale_cap)) = {o.gap_tol * scale[i]:.3g}"
+                    f"a best response ({src}) lowers C_i by {gap_i:.3g} > gap_tol x (1 + "
+                    f"min(|C_i|, scale_cap)) = {tol_i:.3g}"
                 )
-            elif st not in CONVERGED:
+                by = by or src
+            if fails:
+                verdicts.append(Verdict.FAILS)
+            elif finished:
+                verdicts.append(Verdict.PASSES)
+                by = finished[0].label
+            else:
                 gap_ok[i] = False
-                why.append(f"best-response solve did not converge ({st}): the gap is unknown")
+                verdicts.append(Verdict.UNKNOWN)
+                tried = "; ".join(t.label for t in local)
+                why.append(
+                    f"best-response solve did not converge ({tried}) and found no gap: the "
+                    "gap is unknown"
+                )
+                by = "none (no best response finished)"
             reasons.append("; ".join(why))
+            decided.append(by)
             bar.update(1)
         bar.close()
         with np.errstate(invalid="ignore"):
             gap = C - br  # NaN where C_i is not finite
+        verdict = combine_verdicts(verdicts)
         return NashCertificate(
             agents=tuple(g.agent_names),
             costs=C,
@@ -278,10 +435,47 @@ class NashChecker:
             stat_ok=stat_ok,
             gap_ok=gap_ok,
             reasons=tuple(reasons),
-            ok=bool(np.all(stat_ok) and np.all(gap_ok)),
+            ok=verdict is Verdict.PASSES,
             time_s=time.perf_counter() - t0,
             options=o,
+            verdicts=tuple(verdicts),
+            verdict=verdict,
+            decided_by=tuple(decided),
+            global_best_costs=glob,
         )
+
+    def _local_attempts(self, i, u, p, Ci, tol_i, scale_i, fallback=True) -> list[_Attempt]:
+        """Best responses from the candidate until one finishes or finds a gap: IPOPT,
+        then (options ``fallback`` and ``fallback``: the agent does not already fail on
+        stationarity) LM from the better of the candidate and IPOPT's point."""
+        a, b = int(self.game.uoff[i]), int(self.game.uoff[i + 1])
+        first = self._best_response(i, u, p, u[a:b])
+        out = [first]
+        if first.converged or Ci - first.cost > tol_i or not (self.options.fallback and fallback):
+            return out
+        start = first.controls if np.isfinite(first.cost) and first.cost <= Ci else u[a:b]
+        out.append(self._lm_best_response(i, u, p, start, scale_i))
+        return out
+
+    def _global_attempts(self, i, u, p, Ci, tol_i, scale_i) -> list[tuple[int, _Attempt]]:
+        """Best responses from ``global_starts`` starts (zero controls, then seeded draws),
+        the fallback after a start that stops early; stops at the first improvement."""
+        o = self.options
+        a, b = int(self.game.uoff[i]), int(self.game.uoff[i + 1])
+        rng = np.random.default_rng([o.global_seed, i])
+        out = []
+        for s in range(o.global_starts):
+            x0 = np.zeros(b - a) if s == 0 else o.global_scale * rng.standard_normal(b - a)
+            t = self._best_response(i, u, p, x0)
+            if not t.converged and not Ci - t.cost > tol_i and o.fallback:
+                start = t.controls if np.all(np.isfinite(t.controls)) else x0
+                lm = self._lm_best_response(i, u, p, start, scale_i, newton=False)
+                if not np.isfinite(t.cost) or lm.cost < t.cost:
+                    t = lm
+            out.append((s, t))
+            if Ci - t.cost > tol_i:
+                break
+        return out
 
     def _stationarity(self, u, p, finite_in: bool) -> tuple[np.ndarray, np.ndarray]:
         """Each agent's cost ``C_i`` and stationarity ``max |dC_i/du_i|`` (``(N,)`` each;
@@ -301,7 +495,7 @@ class NashChecker:
     def _progress(self, todo: list[int]):
         """A progress bar over the best-response solves, shown for large problems only."""
         g = self.game
-        work = sum(int(g.uoff[i + 1] - g.uoff[i]) for i in todo)
+        work = sum(int(g.uoff[i + 1] - g.uoff[i]) for i in todo) * (1 + self.options.global_starts)
         from tqdm.auto import tqdm
 
         return tqdm(
@@ -326,19 +520,122 @@ class NashChecker:
             )
         return why
 
-    def _best_response(self, i: int, u, p) -> tuple[str, float]:
-        """Agent ``i``'s best response to the others' ``u_{-i}`` from its own ``u_i``:
-        IPOPT's return status and the cost ``C_i`` at the response."""
+    def _cost(self, i: int, u, p, ui) -> float:
+        """``C_i`` with agent ``i``'s controls replaced by ``ui`` (NaN if not finite)."""
+        g = self.game
+        a, b = int(g.uoff[i]), int(g.uoff[i + 1])
+        with np.errstate(all="ignore"):
+            c = float(self._costs(np.concatenate([u[:a], ui, u[b:]]), p)[i])
+        return c if np.isfinite(c) else np.nan
+
+    def _best_response(self, i: int, u, p, x0) -> _Attempt:
+        """IPOPT on agent ``i``'s cost from ``x0`` (its controls), the others' ``u_{-i}``
+        fixed."""
         g = self.game
         a, b = int(g.uoff[i]), int(g.uoff[i + 1])
         solver = self.best_response_nlp(i)
         others = np.concatenate([u[:a], u[b:]])
-        sol = solver(x0=u[a:b], p=np.concatenate([p, others]))
+        sol = solver(x0=x0, p=np.concatenate([p, others]))
         st = str(solver.stats().get("return_status", "unknown"))
         ui = np.asarray(sol["x"], dtype=float).reshape(-1)
-        with np.errstate(all="ignore"):
-            cand = float(self._costs(np.concatenate([u[:a], ui, u[b:]]), p)[i])
-        return st, cand
+        return _Attempt(self.method(i), st, st in CONVERGED, self._cost(i, u, p, ui), ui)
+
+    def _lm_best_response(self, i: int, u, p, x0, scale_i: float, newton=True) -> _Attempt:
+        """Levenberg-Marquardt on agent ``i``'s residual rows from ``x0``: converged when
+        ``|J_i'r_i|_inf <= tol S_i``; it stops after ``max_iter`` iterations, when no step
+        lowers ``C_i`` (``max_damping``) or after three steps in a row that lower it by at
+        most ``gap_tol S_i / 100`` (``small_decrease``); the Newton test decides then
+        (``newton=False``: a search for an improvement only, as from a global start)."""
+        o = self.options
+        g = self.game
+        a, b = int(g.uoff[i]), int(g.uoff[i + 1])
+        if i not in self._calls:
+            self._calls[i] = BufferCall(self.residual_function(i))
+        f = self._calls[i]
+        par = np.concatenate([p, u[:a], u[b:]])
+        n = b - a
+
+        def lin(x):
+            with np.errstate(all="ignore"):
+                r, J = f(x, par)
+            r, J = r.copy(), J.reshape(n, -1).T.copy()  # J: dense, column-major
+            return r, J, 0.5 * float(r @ r)
+
+        if self._pg_call is None:
+            self._pg_call = BufferCall(self._pg)
+        pg = self._pg_call
+
+        def own_gradient(x):
+            with np.errstate(all="ignore"):
+                return pg(np.concatenate([u[:a], x, u[b:]]), p)[0][a:b].copy()
+
+        gtol = o.tol * scale_i
+        x = np.asarray(x0, float).copy()
+        r, J, c = lin(x)
+        if not (np.isfinite(c) and np.all(np.isfinite(J))):
+            return _Attempt("lm", "nonfinite", False, np.nan, x)
+        lam, stop, small = 1e-6, "max_iter", 0
+        negligible = 1e-2 * o.gap_tol * scale_i  # a decrease far below the gap tolerance
+        for it in range(o.max_iter + 1):
+            grad = J.T @ r
+            if np.max(np.abs(grad), initial=0.0) <= gtol:
+                stop = "gtol"
+                break
+            if it == o.max_iter:
+                break
+            H = J.T @ J
+            h = max(1.0, float(np.max(np.diag(H), initial=0.0)))
+            while lam <= 1e10:
+                try:
+                    d = np.linalg.solve(H + lam * h * np.eye(x.size), -grad)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                rn, Jn, cn = lin(x + d)
+                if np.isfinite(cn) and cn < c:
+                    small = small + 1 if c - cn <= negligible else 0
+                    x, r, J, c = x + d, rn, Jn, cn
+                    lam = max(lam / 10, 1e-12)
+                    break
+                lam *= 10
+            else:
+                stop = "max_damping"  # no step lowers C_i
+                break
+            if small >= 3:  # three steps in a row gained next to nothing
+                stop = "small_decrease"
+                break
+        converged = stop == "gtol"
+        if not converged and newton:  # e.g. decreases below round-off: the Newton model decides
+            converged, why = self._newton_test(own_gradient, x, o.gap_tol * scale_i)
+            stop = f"{stop}; {why}"
+        return _Attempt("lm", stop, converged, self._cost(i, u, p, x), x)
+
+    @staticmethod
+    def _newton_test(grad, x, gap_tol_i: float) -> tuple[bool, str]:
+        """Whether the Newton model of ``C_i`` at ``x`` shows no decrease worth the gap
+        tolerance: the Hessian by central differences of the gradient ``dC_i/du_i``
+        (``2 n_i`` evaluations of the game's ``pseudo_gradient``) positive definite, the
+        Newton step small (``<= 1e-2 (1 + |x|_inf)``) and its predicted decrease
+        ``g'H^{-1}g / 2 <= 1e-2 gap_tol S_i``."""
+        n = x.size
+        g0 = grad(x)
+        H = np.empty((n, n))
+        for j in range(n):
+            h = 1e-5 * (1.0 + abs(x[j]))
+            e = np.zeros(n)
+            e[j] = h
+            H[:, j] = (grad(x + e) - grad(x - e)) / (2 * h)
+        H = 0.5 * (H + H.T)
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g0))):
+            return False, "Newton test: not finite"
+        w, V = np.linalg.eigh(H)
+        if w[0] <= 1e-10 * max(1.0, abs(w[-1])):
+            return False, f"Newton test: Hessian not positive definite (eigenvalue {w[0]:.2g})"
+        d = V @ ((V.T @ g0) / w)
+        pred = 0.5 * float(g0 @ d)
+        if np.max(np.abs(d)) > 1e-2 * (1.0 + np.max(np.abs(x))) or pred > 1e-2 * gap_tol_i:
+            return False, f"Newton test: predicted decrease {pred:.2g}"
+        return True, f"Newton test passes (predicted decrease {pred:.2g})"
 
 
 def nash_certificate(
@@ -347,11 +644,12 @@ def nash_certificate(
     u: np.ndarray,
     options: NashOptions | dict | None = None,
 ) -> NashCertificate:
-    """Local open-loop Nash certificate of the joint strategy ``u`` (``(n_u,)``) for ``p``
-    (``(n_p,)``).
+    """Open-loop Nash certificate of the joint strategy ``u`` (``(n_u,)``) for ``p``
+    (``(n_p,)``): local by default, with ``global_starts`` more starts per agent on request.
 
-    Arguments in the solvers' order ``(game, p, u)`` (or as keywords ``p=``, ``u=``). See the module docstring for what is measured, the
-    tolerances and what "local" means. ``options``: :class:`NashOptions` or a dict of its
+    Arguments in the solvers' order ``(game, p, u)`` (or as keywords ``p=``, ``u=``). See
+    the module docstring for what is measured, the tolerances, the three verdicts and what
+    "local" means. ``options``: :class:`NashOptions` or a dict of its
     fields (unknown keys raise :class:`~epo_casadi.errors.SpecError`).
     """
     if not isinstance(game, PotentialGame):

@@ -10,7 +10,9 @@ built-ins:
 * ``lm``: :func:`solvers.lm.solve_lm`, ``LMOptions``, open-loop;
 * ``ipopt``: :func:`solvers.ipopt.solve_ipopt`, ``IpoptOptions``, open-loop;
 * ``ilq``: :func:`solvers.ilq.solve_ilq`, ``ILQOptions``, feedback;
-* ``sqp``: :func:`solvers.sqp.solve_sqp`, ``SQPOptions``, open-loop.
+* ``sqp``: :func:`solvers.sqp.solve_sqp`, ``SQPOptions``, open-loop;
+* ``olne``: :func:`solvers.olne.solve_olne`, ``OLNEOptions``, open-loop (the game's own
+  first-order conditions, coupled games included).
 
 The contract of an entry function (every built-in keeps it)::
 
@@ -56,7 +58,8 @@ from epo_casadi.registry import NAME_RE, load_class
 
 from .ilq import ILQOptions, solve_ilq
 from .ipopt import IpoptOptions, solve_ipopt
-from .lm import LMOptions, solve_lm
+from .lm import LMOptions, prepare_lm, solve_lm
+from .olne import OLNEOptions, prepare_olne, solve_olne
 from .result import SolveResult
 from .sqp import SQPOptions, solve_sqp
 
@@ -240,7 +243,7 @@ def _qualname(obj: Any) -> str:
     return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', repr(obj))}"
 
 
-#: every solver, by name (built-ins: lm, ipopt, ilq, sqp)
+#: every solver, by name (built-ins: lm, ipopt, ilq, sqp, olne)
 SOLVERS = SolverTable()
 
 
@@ -343,17 +346,6 @@ def solve_game(
 # --------------------------------------------------------------------------------------
 # the built-ins
 # --------------------------------------------------------------------------------------
-def _prepare_lm(game: PotentialGame, p, u0, o: LMOptions) -> None:
-    from .lm import batch_function, make_backend
-
-    be = make_backend(game, o)
-    U, P = game.check_inputs(u0, p)
-    be.linearize(U, P)
-    be.energy(U, P)
-    batch_function(game, "rollout", o.threads)(U, P)
-    batch_function(game, "agent_costs", o.threads)(U, P)
-
-
 def _prepare_ipopt(game: PotentialGame, p, u0, o: IpoptOptions) -> None:
     from .ipopt import _solver_for
 
@@ -399,7 +391,7 @@ register_solver(
     solve_lm,
     LMOptions,
     description="Levenberg-Marquardt on the potential (local open-loop Nash)",
-    prepare=_prepare_lm,
+    prepare=prepare_lm,
 )
 register_solver(
     "ipopt",
@@ -426,5 +418,13 @@ register_solver(
     prepare=_prepare_sqp,
     multimodal=False,
     check_game=check_bounds,
+)
+register_solver(
+    "olne",
+    solve_olne,
+    OLNEOptions,
+    description="Newton on every player's first-order conditions (open-loop Nash, coupled games too)",
+    prepare=prepare_olne,
+    multimodal=False,
 )
 SOLVERS._bind_builtins()

@@ -16,7 +16,18 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Status", "StopReason", "stop_reason", "SolveResult", "fmt_number", "demote_nonfinite"]
+__all__ = [
+    "Status",
+    "StopReason",
+    "stop_reason",
+    "Equilibrium",
+    "potential_equilibrium",
+    "Verdict",
+    "combine_verdicts",
+    "SolveResult",
+    "fmt_number",
+    "demote_nonfinite",
+]
 
 
 class Status(enum.Enum):
@@ -82,6 +93,80 @@ class StopReason(str, enum.Enum):
     __hash__ = str.__hash__
     __str__ = str.__str__
     __format__ = str.__format__
+
+
+class Equilibrium(str, enum.Enum):
+    """The kind of point a solve looks for (``SolveResult.equilibrium``), beside its
+    :class:`Status`.
+
+    The status says whether the solver's own first-order tolerance holds; this says what
+    a point that meets it is. A ``str`` (the word is what JSON files and tables hold).
+    """
+
+    #: a local open-loop Nash equilibrium; for LM, IPOPT and SQP: a minimizer of the
+    #: potential of a game whose agents' dynamics depend on their own controls only
+    #: (paper Theorem C.1, :mod:`epo_casadi.game`)
+    OPEN_LOOP = "open-loop Nash"
+    #: LM, IPOPT, SQP on a game with coupled dynamics (``GameSpec(couplings=...)``): an
+    #: agent's controls move another agent's state, ``C_i - E`` depends on ``u_i``, and a
+    #: minimizer of the potential is in general no Nash equilibrium
+    POTENTIAL_MINIMUM = "potential minimum (coupled dynamics: not a Nash equilibrium)"
+    #: iLQ: a local feedback Nash equilibrium of the players' own costs (coupled or not)
+    FEEDBACK = "feedback Nash"
+
+    __hash__ = str.__hash__
+    __str__ = str.__str__
+    __format__ = str.__format__
+
+    @property
+    def message(self) -> str:
+        return _EQUILIBRIUM_MESSAGES[self]
+
+
+_EQUILIBRIUM_MESSAGES = {
+    Equilibrium.OPEN_LOOP: "a local open-loop Nash equilibrium",
+    Equilibrium.POTENTIAL_MINIMUM: (
+        "a minimum of the potential, not a Nash equilibrium: with coupled dynamics an "
+        "agent's controls move another agent's state, so C_i - E depends on u_i (the Nash "
+        "certificate tests the open-loop conditions)"
+    ),
+    Equilibrium.FEEDBACK: "a local feedback Nash equilibrium of the players' own costs",
+}
+
+
+def potential_equilibrium(coupled: bool) -> Equilibrium:
+    """What a minimizer of the potential is: :attr:`Equilibrium.OPEN_LOOP`, or
+    :attr:`Equilibrium.POTENTIAL_MINIMUM` for a game with coupled dynamics
+    (``PotentialGame.coupled``)."""
+    return Equilibrium.POTENTIAL_MINIMUM if coupled else Equilibrium.OPEN_LOOP
+
+
+class Verdict(str, enum.Enum):
+    """An equilibrium check's answer, per agent and overall (a ``str``, written as its word).
+
+    ``fails`` only on evidence (an improvement that a best response or a deviation found,
+    violated stationarity, a non-finite cost); ``unknown`` when the evidence is missing (a
+    best response that stopped early without showing a gap); ``passes`` otherwise.
+    """
+
+    PASSES = "passes"
+    FAILS = "fails"
+    UNKNOWN = "unknown"
+
+    __hash__ = str.__hash__
+    __str__ = str.__str__
+    __format__ = str.__format__
+
+
+def combine_verdicts(verdicts) -> Verdict:
+    """The overall verdict: ``fails`` if one agent fails, else ``unknown`` if one is
+    unknown, else ``passes`` (also for no agents)."""
+    vs = [Verdict(v) for v in verdicts]
+    if Verdict.FAILS in vs:
+        return Verdict.FAILS
+    if Verdict.UNKNOWN in vs:
+        return Verdict.UNKNOWN
+    return Verdict.PASSES
 
 
 def stop_reason(value: Any) -> Any:
@@ -154,6 +239,11 @@ class SolveResult:
     grad_norm: infinity norm of the gradient of ``E`` at the solution, ``(...)``.
     wall_time: seconds for the whole call.
     info: solver-specific extras (damping history, IPOPT return string, gains, ...).
+    equilibrium: the kind of point the solver looks for (:class:`Equilibrium`, one for the
+        whole batch; the status says whether it got there): LM, IPOPT and SQP set
+        ``open-loop Nash``, or ``potential minimum (coupled dynamics: not a Nash
+        equilibrium)`` for a game with coupled dynamics; iLQ ``feedback Nash``. ``None``:
+        the solver does not say.
     """
 
     solver: str
@@ -167,6 +257,13 @@ class SolveResult:
     grad_norm: np.ndarray
     wall_time: float
     info: dict = field(default_factory=dict)
+    equilibrium: Equilibrium | None = None
+
+    @property
+    def potential_only(self) -> bool:
+        """The point is a minimum of the potential only, not a Nash equilibrium (coupled
+        dynamics: :attr:`Equilibrium.POTENTIAL_MINIMUM`)."""
+        return self.equilibrium is Equilibrium.POTENTIAL_MINIMUM
 
     @property
     def batched(self) -> bool:
@@ -198,7 +295,7 @@ class SolveResult:
                 v = v[
                     (slice(None), index) if not isinstance(index, tuple) else (slice(None), *index)
                 ]
-            elif f.name in ("solver", "wall_time"):
+            elif f.name in ("solver", "wall_time", "equilibrium"):
                 pass
             elif f.name == "info":
                 v = {
@@ -215,7 +312,9 @@ class SolveResult:
         return SolveResult(**kw)
 
     def summary(self) -> str:
-        """One line; total over every status (NaN, inf and missing values are printed as such)."""
+        """One line; total over every status (NaN, inf and missing values are printed as
+        such); the kind of point (:attr:`equilibrium`) when the solver says."""
+        eq = f"; equilibrium: {self.equilibrium.value}" if self.equilibrium is not None else ""
         if self.batched:
             e = np.asarray(self.energy, dtype=float).reshape(-1)
             fin = np.isfinite(e)
@@ -223,12 +322,12 @@ class SolveResult:
             nonfin = f" ({e.size - int(fin.sum())} non-finite)" if not fin.all() else ""
             return (
                 f"{self.solver}: {e.size} problems, {self.message}; energy mean {mean}{nonfin}, "
-                f"iterations mean {np.mean(self.iterations):.1f}, {self.wall_time * 1e3:.1f} ms"
+                f"iterations mean {np.mean(self.iterations):.1f}, {self.wall_time * 1e3:.1f} ms{eq}"
             )
         return (
             f"{self.solver}: {self.status.value} ({self.status.message}); "
             f"energy {fmt_number(self.energy, '.6g')}, {int(self.iterations)} iterations, "
-            f"|grad|_inf {fmt_number(self.grad_norm, '.3g')}, {self.wall_time * 1e3:.1f} ms"
+            f"|grad|_inf {fmt_number(self.grad_norm, '.3g')}, {self.wall_time * 1e3:.1f} ms{eq}"
         )
 
     def to_dict(self) -> dict:

@@ -41,6 +41,7 @@ from epo_casadi import inspect as ins
 from epo_casadi.registry import DYNAMICS, FEATURES
 from scenarios.gamefile import apply_settings, dump_game, load_game, parse_game, save_game
 from solvers import nash_certificate, solve_ilq, solve_ipopt, solve_lm
+from solvers.result import Equilibrium, Verdict
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 MODULE = "my_lanes"
@@ -443,13 +444,22 @@ def test_coupled_rollout_lm_ipopt_ilq():
     Xa, Xb = game.split_states(np.asarray(game.function("rollout")(u, p)).ravel())
     np.testing.assert_allclose(np.hstack([Xa, Xb]), ref, atol=1e-13)
     # LM (dense backend chosen for coupled games) and IPOPT: the least-squares optimum
-    # (the residual is affine in u)
+    # (the residual is affine in u), a minimum of the potential
     J = np.asarray(ca.densify(game.function("jacobian")(np.zeros(game.n_u), p)))
     r0 = np.asarray(game.function("residual")(np.zeros(game.n_u), p)).ravel()
     u_star = np.linalg.lstsq(J, -r0, rcond=None)[0]
     lm, ip = solve_lm(game, p), solve_ipopt(game, p)
     np.testing.assert_allclose(lm.controls, u_star, atol=1e-8)
     np.testing.assert_allclose(ip.controls, u_star, atol=1e-6)
+    # with coupled dynamics that minimum is no open-loop Nash equilibrium: the results say
+    # so, and the certificate finds the truck's better response (the tow line lets the
+    # truck's controls move the trailer, so C_truck - E depends on them)
+    for res in (lm, ip):
+        assert res.status.value == "converged" and res.equilibrium is Equilibrium.POTENTIAL_MINIMUM
+    cert = nash_certificate(game, p, lm.controls)
+    assert cert.verdict is Verdict.FAILS and cert.verdicts == (Verdict.FAILS, Verdict.PASSES)
+    assert cert.best_response_gap[0] > 0.01 and cert.stationarity[0] > 0.1  # measured 0.034
+    assert cert.stationarity[1] < 1e-6  # the trailer's own controls do not move the truck
     with pytest.raises(SpecError, match="coupled dynamics"):
         StructuredGN(game)
     # iLQ: the feedback Nash equilibrium of the LQ game (coupled Riccati in numpy)
@@ -458,7 +468,9 @@ def test_coupled_rollout_lm_ipopt_ilq():
     Ua, Ub = game.split_controls(il.controls)
     U_ref = _feedback_nash_lq(A, B, game.K, ref[0])
     np.testing.assert_allclose(np.hstack([Ua, Ub]), U_ref, atol=1e-7)
-    assert np.max(np.abs(il.controls - lm.controls)) > 1e-4  # feedback != open loop here
+    assert il.equilibrium is Equilibrium.FEEDBACK
+    # the feedback equilibrium is another point than the potential minimum
+    assert np.max(np.abs(il.controls - lm.controls)) > 1e-4
 
 
 def test_coupling_is_checked():

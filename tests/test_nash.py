@@ -141,6 +141,9 @@ def test_stationarity_only_and_outputs(crossing):
         ({"stat_tol": 0.0}, "nash.stat_tol"),
         ({"max_iter": -1}, "nash.max_iter"),
         ({"best_response": 1}, "nash.best_response"),
+        ({"fallback": "yes"}, "nash.fallback"),
+        ({"global_starts": -1}, "nash.global_starts"),
+        ({"global_scale": 0.0}, "nash.global_scale"),
     ],
 )
 def test_bad_options_raise(crossing, options, field):

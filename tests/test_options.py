@@ -16,6 +16,7 @@ from solvers.ipopt import IpoptOptions
 from solvers.lm import LMOptions, check_options
 from solvers.multimodal import MultiModalOptions
 from solvers.nash import NashOptions
+from solvers.olne import OLNEOptions
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 ALL = [LMOptions, ILQOptions, IpoptOptions, NashOptions, MultiModalOptions, LossWeights]
@@ -57,7 +58,11 @@ def _value(text: str):
 
 @pytest.mark.parametrize(
     "cls, doc, after",
-    [(ILQOptions, "ilq.md", "### Options (`ILQOptions`"), (IpoptOptions, "solvers.md", "IPOPT")],
+    [
+        (ILQOptions, "ilq.md", "### Options (`ILQOptions`"),
+        (IpoptOptions, "solvers.md", "IPOPT"),
+        (OLNEOptions, "solvers.md", "### Options (`OLNEOptions`"),
+    ],
 )
 def test_documented_defaults_are_the_code_defaults(cls, doc, after):
     documented = _documented_defaults(doc, after)

@@ -65,13 +65,18 @@ def test_certificate_of_non_finite_values_fails_with_a_reason(small):
 
 
 def test_unconverged_best_response_is_no_evidence(small):
-    """Closes: a best-response solve that stopped early counted as a zero gap."""
+    """Closes: a best-response solve that stopped early counted as a zero gap. Without
+    the second method it is no evidence either way: unknown, not passes (nor fails); the
+    second method (LM on the agent's residuals, then its Newton test) decides."""
     g, p, u = small
     assert nash_certificate(g, p, u).ok
-    cert = nash_certificate(g, p, u, {"max_iter": 0})
+    cert = nash_certificate(g, p, u, {"max_iter": 0, "fallback": False})
     assert set(cert.best_response_status) == {"Maximum_Iterations_Exceeded"}
     assert cert.stat_ok.all() and not cert.gap_ok.any() and not cert.ok
+    assert cert.verdict == "unknown" and set(cert.verdicts) == {"unknown"}
     assert all("did not converge" in r for r in cert.reasons)
+    rescued = nash_certificate(g, p, u, {"max_iter": 0})
+    assert rescued.ok and all(by.startswith("lm (agent residuals)") for by in rescued.decided_by)
 
 
 # ---- item 9: the certificate's cost is proportionate --------------------------------------

@@ -5,7 +5,10 @@ in its module docstring and ``docs/compare.md``). This command reads the games (
 or every ``.yaml``/``.yml``/``.json`` file of a directory; ``example:NAME`` for a shipped
 example), runs the study and writes, atomically, into ``--out``:
 
-* ``compare.md`` and ``compare.csv``: one row per (game, solver, init);
+* ``compare.md`` and ``compare.csv``: one row per (game, solver, init), with what each
+  point is (``equilibrium``: ``potential minimum (coupled dynamics: not a Nash
+  equilibrium)`` for a potential solve of a coupled game) and the check's verdict
+  (``passes`` / ``fails`` / ``unknown``, local by default; ``check_note`` says why);
 * ``<game>_gap.png``: the energy gap ``E - E_best`` against iterations and solve time;
 * with ``--scaling``: ``scaling.csv``, ``scaling.md`` and ``scaling.png`` (time per
   solve against ``N`` and ``K`` on a crossing family, log-log with fitted slopes).
@@ -141,7 +144,11 @@ def _save_figure(path: Path, fig) -> None:
     show_default=True,
     help="Folder for the table and figures.",
 )
-@click.option("--no-check", is_flag=True, help="Skip the equilibrium checks.")
+@click.option(
+    "--no-check",
+    is_flag=True,
+    help="Skip the equilibrium checks (local open-loop certificate or feedback Nash check).",
+)
 @click.option("--no-figures", is_flag=True, help="Write the table only.")
 @click.option(
     "--scaling", is_flag=True, help="Also run the scaling study (N 2..8, K 20..200; minutes)."
@@ -182,13 +189,14 @@ def compare(games, solver_texts, init_texts, out_dir, no_check, no_figures, scal
                     "solver",
                     "init",
                     "status",
+                    "equilibrium",
                     "energy",
                     "gap",
                     "iterations",
                     "setup_s",
                     "solve_s",
                     "check",
-                    "check_ok",
+                    "verdict",
                 )
             ),
             nl=False,

@@ -38,7 +38,7 @@ def _row(game_name: str, data: dict) -> list[str]:
         costs,
         num(_largest(c["best_response_gap"]), ".2g") if c else "-",
         num(_largest(c["stationarity"]), ".2g") if c else "-",
-        ("yes" if c["ok"] else "NO") if c else "-",
+        {"passes": "yes", "fails": "NO"}.get(c.get("verdict"), c.get("verdict")) if c else "-",
         str(data["iterations"]),
         num(data["time_s"], ".3f"),
     ]

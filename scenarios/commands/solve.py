@@ -2,16 +2,22 @@
 
 The result file (``--out``) is one JSON object, documented in
 ``docs/gamefiles.md``: per-agent ``states`` (``(K+1, nx_i)``) and ``controls``
-(``(K, nu_i)``), ``energy``, ``agent_costs``, the local Nash ``certificate``, ``status``,
-``message``, ``iterations``, ``time_s``, the ``params`` used (by block) and the solver
-``options``. :func:`read_result` reads one back for a game (``epo inspect --at``).
+(``(K, nu_i)``), ``energy``, ``agent_costs``, what the point is (``equilibrium``), the
+local Nash ``certificate`` or the ``feedback_check``, ``status``, ``message``,
+``iterations``, ``time_s``, the ``params`` used (by block) and the solver ``options``.
+:func:`read_result` reads one back for a game (``epo inspect --at``).
 
 ``--solver`` names any solver of :data:`solvers.registry.SOLVERS` (``lm``, ``ipopt``,
-``ilq``, ``sqp`` or a registered one); the open-loop Nash certificate is computed for the
-solvers that find an open-loop equilibrium. ``--solver ilq`` solves for a feedback Nash
-equilibrium (:mod:`solvers.ilq`); its check is the feedback condition ``max |a| <= tol``
-(``feedback_residual`` in the file), not the open-loop certificate, which is not computed
-for it. ``--modes N`` runs the multi-modal solver
+``ilq``, ``sqp`` or a registered one: every solver ``epo compare`` runs). Each solve runs
+the equilibrium check of its solver (:meth:`solvers.registry.SolverEntry.check`) unless
+``--no-certificate``: the local open-loop Nash certificate (:mod:`solvers.nash`) for the
+solvers that find an open-loop equilibrium, the sampled feedback Nash check
+(:mod:`solvers.feedback_nash`) of the policy for ``--solver ilq`` (a feedback Nash
+equilibrium, :mod:`solvers.ilq`; its first-order condition ``max |a| <= tol`` is
+``feedback_residual`` in the file). Both are local checks; the verdict is ``passes``,
+``fails`` or ``unknown`` (a best response that did not finish without showing a gap).
+A potential solve of a game with coupled dynamics is a potential minimum, not a Nash
+equilibrium: the summary and the file's ``equilibrium`` say so. ``--modes N`` runs the multi-modal solver
 (:func:`solvers.multimodal.solve_multimodal`, a solver the table marks ``multimodal``:
 ``ilq``, ``lm`` or a registered one) from ``N`` seeded starts: the file describes the most
 likely mode's solve and lists every mode (``modes``: share, energy, costs, passing sides,
@@ -104,27 +110,34 @@ def _jsonable(v: Any) -> Any:
 
 def run_solve(game: PotentialGame, p: np.ndarray, solver: str, options: Any, certify: bool = True):
     """Solve one problem with the registered ``solver`` (``"lm"``, ``"ipopt"``, ``"ilq"``,
-    ``"sqp"``, ...); return ``(result, certificate)``. The open-loop Nash certificate is
-    computed for solvers of open-loop equilibria only (iLQ's equilibrium is a feedback one:
-    see :func:`result_dict`)."""
+    ``"sqp"``, ...); return ``(result, check)``: the equilibrium check of the solver's kind
+    (a :class:`solvers.nash.NashCertificate` for open-loop solvers, a
+    :class:`solvers.feedback_nash.FeedbackNashCheck` of the policy for feedback ones such as
+    iLQ), or ``None`` with ``certify=False`` or NaN/inf in the solution."""
     from solvers.registry import SOLVERS
 
     entry = SOLVERS.entry(solver, "--solver")
     res = entry.solve(game, p, options=options)
     cert = None
-    # no certificate of NaN/inf values, nor an open-loop one of a feedback equilibrium
-    if certify and res.status is not Status.NONFINITE and entry.equilibrium == "open-loop":
-        from solvers.nash import nash_certificate
+    if certify and res.status is not Status.NONFINITE:  # no check of NaN/inf values
+        if entry.equilibrium == "open-loop":
+            from solvers.nash import nash_certificate
 
-        cert = nash_certificate(game, p=p, u=res.controls)
+            cert = nash_certificate(game, p=p, u=res.controls)
+        elif entry.equilibrium == "feedback" and "gains" in res.info:
+            from solvers.feedback_nash import check_ilq_result
+
+            cert = check_ilq_result(game, p, res)
     return res, cert
 
 
 def result_dict(
     game: PotentialGame, p: np.ndarray, res, cert=None, source: str | None = None
 ) -> dict:
-    """The JSON object of one solve (see the module docstring)."""
+    """The JSON object of one solve (see the module docstring). ``cert``: the check
+    :func:`run_solve` returns (open-loop certificate or feedback check) or ``None``."""
     names = game.agent_names
+    kind = getattr(cert, "kind", None)
     X = game.split_states(res.states)
     U = game.split_controls(res.controls)
     blocks = game.params.unpack(np.asarray(p, dtype=float))
@@ -134,6 +147,7 @@ def result_dict(
             "game": source,
             "solver": res.solver,
             "status": res.status,
+            "equilibrium": getattr(res, "equilibrium", None),
             "ok": bool(res.ok),
             "message": res.message,
             "iterations": int(res.iterations),
@@ -150,7 +164,8 @@ def result_dict(
             "controls": {a: U[i] for i, a in enumerate(names)},
             "params": blocks,
             "energy_history": energy_history(res),
-            "certificate": cert.to_dict() if cert is not None else None,
+            "certificate": cert.to_dict() if kind == "open-loop" else None,
+            "feedback_check": cert.to_dict() if kind == "feedback" else None,
             "stop": res.info.get("stop"),
             "feedback_residual": res.info.get("stationarity") if res.solver == "ilq" else None,
             "options": res.info.get("options"),
@@ -270,22 +285,62 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
         f"{fmt_number(data['time_s'], '.3g')} s; |grad|_inf {fmt_number(data['grad_norm'], '.3g')}",
         f"  agent costs: {costs}",
     ]
+    eq = data.get("equilibrium")
+    if eq:
+        lines.append(f"  equilibrium: {eq}")
     c = data.get("certificate")
+    f = data.get("feedback_check")
     if c is not None:
         lines.append(
-            f"  Nash certificate: {'passes' if c['ok'] else 'FAILS'} (max |dC_i/du_i| "
+            f"  Nash certificate: {_verdict_word(c)} ({_scope(c, 'agent')}; max |dC_i/du_i| "
             f"{fmt_number(_largest(c['stationarity']), '.3g')}, max best-response gap "
             f"{fmt_number(_largest(c['best_response_gap']), '.3g')}"
             + (f"; {c['time_s']:.3g} s)" if c.get("time_s") is not None else ")")
         )
-    elif data.get("status") == Status.NONFINITE.value:
+        lines += _reason_lines(c, data.get("agents") or [])
+    elif f is None and data.get("status") == Status.NONFINITE.value:
         lines.append("  Nash certificate: not computed (NaN or inf in the solution)")
+    if f is not None:
+        lines.append(
+            f"  feedback Nash check: {_verdict_word(f)} ({_scope(f, 'player')}, sampled "
+            f"policy deviations; largest own-cost decrease {fmt_number(_largest(f['gain']), '.3g')}"
+            + (f"; {f['time_s']:.3g} s)" if f.get("time_s") is not None else ")")
+        )
+        lines += _reason_lines(f, data.get("agents") or [])
     if data.get("solver") == "ilq":
         lines.append(
             f"  feedback Nash residual max |a| {fmt_number(data.get('feedback_residual'), '.3g')}"
-            " (open-loop certificate not computed for a feedback equilibrium)"
+            " (iLQ's first-order condition; the open-loop certificate does not apply to a "
+            "feedback equilibrium)"
         )
     return lines
+
+
+def _verdict_word(check: dict) -> str:
+    """``passes`` / ``FAILS`` / ``unknown`` of a check in a result file (files without a
+    verdict: from ``ok``)."""
+    v = check.get("verdict") or ("passes" if check.get("ok") else "fails")
+    return {"fails": "FAILS"}.get(v, v)
+
+
+def _scope(check: dict, who: str) -> str:
+    """``local`` or ``local + K global starts per agent`` of a check in a result file."""
+    k = check.get("global_starts")
+    if k is None:
+        k = (check.get("options") or {}).get("global_starts") or 0
+    return "local" if not k else f"local + {k} global start{'s' if k > 1 else ''} per {who}"
+
+
+def _reason_lines(check: dict, agents: list) -> list[str]:
+    """One line per agent that does not pass: its verdict and why."""
+    out = []
+    verdicts = check.get("verdicts") or []
+    for i, r in enumerate(check.get("reasons") or []):
+        if r:
+            name = agents[i] if i < len(agents) else f"player {i}"
+            v = verdicts[i] if i < len(verdicts) else ""
+            out.append(f"    {name}: {v + ': ' if v else ''}{r}")
+    return out
 
 
 def mode_lines(game: PotentialGame, modes: list[dict], n_samples: int, statuses: str) -> list[str]:
@@ -376,7 +431,8 @@ class SolverName(click.ParamType):
     "--certificate/--no-certificate",
     default=True,
     show_default=True,
-    help="Compute the local Nash certificate (a best-response solve per agent).",
+    help="Run the equilibrium check: the local open-loop Nash certificate (a best-response "
+    "solve per agent) or, for --solver ilq, the feedback Nash check of the policy.",
 )
 @allow_import_option
 def solve(
@@ -425,8 +481,9 @@ def solve(
         click.echo(line)
     if "setup_s" in res.info:  # IPOPT: the NLP's set-up (Hessian built or read from the cache)
         how = {"disk": "read from the cache", "rebuilt": "rebuilt, cache file unusable"}
-        src = how.get(res.info["setup_source"], res.info["setup_source"])
-        click.echo(f"  set-up {res.info['setup_s']:.2f} s (Hessian of the Lagrangian {src})")
+        src = res.info.get("setup_source")
+        tail = f" (Hessian of the Lagrangian {how.get(src, src)})" if src is not None else ""
+        click.echo(f"  set-up {fmt_number(res.info['setup_s'], '.2f')} s{tail}")
     if out is not None:
         write_result(data, out)
         click.echo(f"wrote {out}")

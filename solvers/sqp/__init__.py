@@ -59,7 +59,10 @@ Statuses
       and the KKT test judge it.
 
 A batch ``(B, n)`` is solved problem by problem (a loop) with the same OSQP object and
-returned as one batched result, like :func:`solvers.ipopt.solve_ipopt`.
+returned as one batched result, like :func:`solvers.ipopt.solve_ipopt`. Its
+``equilibrium`` is that of a potential solve (:func:`solvers.result.potential_equilibrium`):
+``potential minimum (coupled dynamics: not a Nash equilibrium)`` for a game with coupled
+dynamics.
 
 Modules
     :mod:`solvers.sqp.options` (:class:`SQPOptions`), :mod:`solvers.sqp.qp` (the

@@ -11,7 +11,7 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from ..lm import check_options
-from ..result import SolveResult, demote_nonfinite
+from ..result import SolveResult, demote_nonfinite, potential_equilibrium
 from .iteration import SQPRun
 from .options import SQPOptions
 from .qp import StagedQP
@@ -118,6 +118,7 @@ def _stack(game: PotentialGame, runs: list[dict], wall: float, opts: SQPOptions)
             "multipliers": np.stack([r["y"] for r in runs]),
             "options": opts,
         },
+        equilibrium=potential_equilibrium(game.coupled),
     )
 
 
