@@ -43,6 +43,15 @@ Best responses, in order until one decides (:attr:`NashCertificate.decided_by` n
        positive definite, the Newton step small and its predicted decrease below
        ``gap_tol S_i / 100``.
 
+    3. second order, for agents with the exact Hessian: a best response that finished at
+       (or started from) a stationary point may sit on a saddle of ``C_i`` (IPOPT,
+       warm-started at a stationary point, stops there). The smallest eigenvalue of the
+       exact ``d^2 C_i / du_i^2`` at the point decides: above ``-stat_tol S_i`` the
+       point is a local minimum of ``C_i``; below it, steps of growing length along the
+       eigenvector (both signs) look for a lower ``C_i``: one that lowers it by more than
+       the gap tolerance fails the agent, none leaves it ``unknown`` (a saddle without a
+       found improvement is no evidence of a minimum).
+
     Agents with ``n_i > best_response_max`` get the stationarity test only (their
     verdict rests on it; the table says so), as do all with ``best_response=False``.
 
@@ -99,6 +108,7 @@ METHOD_NAMES = {
     "exact": "ipopt (exact Hessian)",
     "l-bfgs": "ipopt (L-BFGS)",
     "lm": "lm (agent residuals)",
+    "curvature": "negative curvature of the exact own Hessian",
 }
 
 
@@ -269,6 +279,7 @@ class NashChecker:
         self._pg = game.function("pseudo_gradient")
         self._br: dict[int, ca.Function] = {}
         self._lm: dict[int, ca.Function] = {}
+        self._hess: dict[int, ca.Function] = {}
         self._calls: dict[int, BufferCall] = {}  # the residual functions, on numpy buffers
         self._pg_call: BufferCall | None = None
 
@@ -331,6 +342,42 @@ class NashChecker:
                 f"agent_residual_{i}", [ui, par], [r, J], ["u_i", "p"], ["r", "J"]
             )
         return self._lm[i]
+
+    def own_hessian(self, i: int) -> ca.Function:
+        """``(u_i, [p; u_{-i}]) -> H``: the exact Hessian of ``C_i`` in agent ``i``'s
+        controls (dense; for the second-order test of agents with the exact Hessian)."""
+        if i not in self._hess:
+            ui, par, p, u = self._agent_symbols(i)
+            Ci = self._costs(u, p)[i]
+            H = ca.densify(ca.hessian(Ci, ui)[0])
+            self._hess[i] = ca.Function(f"own_hessian_{i}", [ui, par], [H], ["u_i", "p"], ["H"])
+        return self._hess[i]
+
+    def _curvature_attempt(self, i: int, u, p, x, Ci, tol_i, scale_i) -> _Attempt | None:
+        """The second-order test at agent ``i``'s controls ``x`` (module docstring, step
+        3): None when the exact own Hessian there has no eigenvalue below
+        ``-stat_tol S_i``; else the best point of the steps along its eigenvector, as a
+        ``curvature`` attempt that converged only if it shows no saddle."""
+        g = self.game
+        a, b = int(g.uoff[i]), int(g.uoff[i + 1])
+        others = np.concatenate([u[:a], u[b:]])
+        with np.errstate(all="ignore"):
+            H = np.asarray(self.own_hessian(i)(x, np.concatenate([p, others])), dtype=float)
+        if not np.all(np.isfinite(H)):
+            return None
+        w, V = np.linalg.eigh(0.5 * (H + H.T))
+        if not w[0] < -self.options.stat_tol * scale_i:
+            return None
+        v = V[:, 0]
+        best_c, best_x = self._cost(i, u, p, x), x
+        for t in np.geomspace(1e-3, 1e2, 11):
+            for sgn in (1.0, -1.0):
+                xt = x + sgn * t * v
+                c = self._cost(i, u, p, xt)
+                if np.isfinite(c) and c < best_c:
+                    best_c, best_x = c, xt
+        status = f"own Hessian eigenvalue {w[0]:.3g} < 0 (a saddle of C_i)"
+        return _Attempt("curvature", status, False, best_c, best_x)
 
     def certify(self, p: np.ndarray, u: np.ndarray) -> NashCertificate:
         """Certificate for one problem: ``p`` ``(n_p,)``, ``u`` ``(n_u,)`` (the order of
@@ -451,10 +498,16 @@ class NashChecker:
         a, b = int(self.game.uoff[i]), int(self.game.uoff[i + 1])
         first = self._best_response(i, u, p, u[a:b])
         out = [first]
-        if first.converged or Ci - first.cost > tol_i or not (self.options.fallback and fallback):
+        if Ci - first.cost > tol_i:
             return out
-        start = first.controls if np.isfinite(first.cost) and first.cost <= Ci else u[a:b]
-        out.append(self._lm_best_response(i, u, p, start, scale_i))
+        if not first.converged and self.options.fallback and fallback:
+            start = first.controls if np.isfinite(first.cost) and first.cost <= Ci else u[a:b]
+            out.append(self._lm_best_response(i, u, p, start, scale_i))
+        done = [t for t in out if t.converged]
+        if done and self.method(i) == "exact" and not Ci - min(t.cost for t in out) > tol_i:
+            saddle = self._curvature_attempt(i, u, p, done[0].controls, Ci, tol_i, scale_i)
+            if saddle is not None:  # no local minimum: the finished solves decide nothing
+                out = [replace(t, converged=False) for t in out] + [saddle]
         return out
 
     def _global_attempts(self, i, u, p, Ci, tol_i, scale_i) -> list[tuple[int, _Attempt]]:

@@ -391,3 +391,25 @@ def test_feedback_options_are_checked():
         with pytest.raises(SpecError) as e:
             FeedbackNashOptions(**{key: value})
         assert e.value.field == f"feedback_nash.{key}"
+
+
+def test_a_saddle_of_an_agents_cost_fails_on_its_negative_curvature():
+    """Newton on the stacked conditions from zero controls (no saddle escapes) stops on a
+    point where both players' own Hessians have a negative eigenvalue: stationary, and
+    IPOPT warm-started there stops at once. The second-order test finds the improvement
+    along the eigenvector; LM's equilibrium of the same game passes."""
+    from solvers.lm import solve_lm
+    from solvers.olne import solve_olne
+    from tests.helpers import crossing_game
+
+    g = crossing_game(N=2, K=20, offset=0.3)
+    p = g.default_params()
+    r = solve_olne(g, p, None, {"start": "given", "saddle_escapes": 0})
+    assert r.status.value == "converged" and not r.info["second_order_ok"]
+    c = nash_certificate(g, p, r.controls)
+    assert c.verdicts == (Verdict.FAILS, Verdict.FAILS)
+    assert all("negative curvature" in d for d in c.decided_by)
+    # the found improvement is real: the cost at the certificate's best response is lower
+    assert np.all(c.best_response_gap > 1e-4)
+    lm = solve_lm(g, p)
+    assert nash_certificate(g, p, lm.controls).verdict is Verdict.PASSES
