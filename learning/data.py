@@ -18,6 +18,7 @@ A batch (``B`` samples, ``N`` agents, ``H+1`` history steps, ``T`` future steps)
     goals          (B, N, 2)      float32   goal positions (if the dataset has them)
     goal_candidates (B, N, G, 2)  float32   candidate goal points (if the dataset has them)
     lanes          (B, L, P, 2)   float32   lane polylines, the map input (if stored)
+    lanes_mask     (B, L)         bool      False: an empty lane slot (if stored; Waymo)
     paths          (B, N, P, 2)   float32   each agent's reference lane (game ``path``; if stored)
     vref           (B, N)         float32   each agent's reference speed (game ``vref``; if stored)
     radius         (B, N)         float32   each agent's collision radius (game ``radius``; if stored)
@@ -101,9 +102,10 @@ OPTIONAL_FIELDS = (
     "goal_candidate_lane",
     "goal_candidate_on_lane",
     "agents_mask",
+    "lanes_mask",
 )
-#: the optional fields a batch carries as float32 arrays (``history_valid`` and
-#: ``agents_mask`` become masks, ``gt_mode`` selects the ground truth, the
+#: the optional fields a batch carries as float32 arrays (``history_valid``,
+#: ``agents_mask`` and ``lanes_mask`` become masks, ``gt_mode`` selects the ground truth, the
 #: ``goal_candidate_*`` ones become ``goal_lane``)
 FLOAT_FIELDS = tuple(
     k
@@ -112,6 +114,7 @@ FLOAT_FIELDS = tuple(
     not in (
         "history_valid",
         "agents_mask",
+        "lanes_mask",
         "gt_mode",
         "goal_candidate_lane",
         "goal_candidate_on_lane",
@@ -292,6 +295,19 @@ class SceneDataset(torch.utils.data.Dataset):
                     f"{where}.schema.agents_mask",
                     f"expected dtype bool, got {schema['agents_mask']['dtype']}",
                 )
+        if "lanes_mask" in shape:
+            L = shape["lanes"][0] if "lanes" in shape else None
+            if len(shape["lanes_mask"]) != 1 or (L is not None and shape["lanes_mask"] != (L,)):
+                raise DatasetError(
+                    f"{where}.schema.lanes_mask",
+                    f"expected shape ({'L' if L is None else L},) (one flag per lane of "
+                    f"lanes), got {shape['lanes_mask']}",
+                )
+            if np.dtype(schema["lanes_mask"]["dtype"]) != np.dtype(bool):
+                raise DatasetError(
+                    f"{where}.schema.lanes_mask",
+                    f"expected dtype bool, got {schema['lanes_mask']['dtype']}",
+                )
         if len(fs) != 4 or fs[1] != N or fs[3] < 2:
             raise DatasetError(
                 f"{where}.schema.future", f"expected shape (M, {N}, T, nx), got {fs}"
@@ -348,6 +364,8 @@ class SceneDataset(torch.utils.data.Dataset):
         if agents is None:
             agents = np.ones((n, self.n_agents), bool)
         out["agents_mask"] = np.ascontiguousarray(agents, bool)
+        if "lanes_mask" in raw:
+            out["lanes_mask"] = np.ascontiguousarray(raw["lanes_mask"], bool)
         if "goal_candidate_lane" in raw and "lanes" in raw:
             gl = goal_lanes(
                 raw["goal_candidate_lane"], raw.get("goal_candidate_on_lane"), raw["lanes"].shape[1]
@@ -356,6 +374,34 @@ class SceneDataset(torch.utils.data.Dataset):
                 out["goal_lane"] = gl
         out["gt_states"] = np.ascontiguousarray(gt, np.float32)
         return out
+
+    def scalar_fields(self) -> list[str]:
+        """The dataset's numeric fields of one number per sample (shape ``()``), e.g.
+        ``min_distance``: the fields :meth:`sample_field` reads (and ``--subset`` compares)."""
+        out = []
+        for k, v in self.manifest["schema"].items():
+            dt = np.dtype(v["dtype"])
+            if tuple(v["shape"]) == () and (dt.kind in "iuf" or dt == np.dtype(bool)):
+                out.append(k)
+        return out
+
+    def sample_field(self, name: str) -> np.ndarray:
+        """The values ``(n,)`` of the scalar per-sample field ``name`` over the split, in
+        sample order, read from the shards for this call only (batches do not carry it). A
+        field that is not stored, or not one number per sample, is refused naming it
+        (:class:`~epo_casadi.errors.SpecError` ``field``) with the fields there are."""
+        scalars = self.scalar_fields()
+        if name not in scalars:
+            schema = self.manifest["schema"]
+            why = (
+                f"not one number per sample (shape {tuple(schema[name]['shape'])}, dtype "
+                f"{schema[name]['dtype']})"
+                if name in schema
+                else f"not a field of {self.directory}"
+            )
+            raise SpecError("field", f"{name!r} is {why}; the scalar per-sample fields: {scalars}")
+        with SplitReader(self.directory, self.split, fields=[name]) as r:
+            return r.read_all()[name]
 
     def read(self, indices) -> dict[str, np.ndarray]:
         """Numpy arrays of the samples ``indices`` (any order): the batch fields but ``index``."""

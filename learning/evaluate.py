@@ -5,12 +5,24 @@ with :func:`learning.metrics.all_metrics`: minADE, minFDE (marginal), minSADE, m
 and the overlap rate OR of the most likely joint mode (joint), in metres, averaged over
 the samples. Joint models (ours, SC, CV) give scene probabilities ``softmax(logits)``;
 the marginal V-LSTM gives per-agent probabilities, turned into joint scenes by
-:func:`learning.metrics.marginal_to_joint` as in the paper. The agents' radii for OR come
-from the dataset's game; on datasets with vehicle sizes (exiD layout: ``length``, ``width``)
-``OR`` uses oriented vehicle boxes instead and ``OR_circle`` keeps the circles
-(:mod:`learning.metrics`); the table's header says which. Padded agents (the batches'
-``agents_mask`` False) count in no metric: the means are over each sample's real agents,
-the overlap rate over pairs of real agents.
+:func:`learning.metrics.marginal_to_joint` as in the paper. The agents' circles for OR are
+each sample's ``radius`` where the dataset stores it and the game takes it as a parameter
+(the readers of recorded data, exiD), else the dataset game's radii; on datasets with
+vehicle sizes (``length``, ``width``: exiD layout, Waymo) ``OR`` uses oriented vehicle
+boxes instead and ``OR_circle`` keeps the circles (:mod:`learning.scoring`); the table's
+header says which. Padded agents (the batches' ``agents_mask`` False) count in no metric:
+the means are over each sample's real agents, the overlap rate over pairs of real agents.
+
+Focal agent: a dataset whose manifest says ``meta.focal_slot`` (an agent slot; 0 in the
+readers of :mod:`scenarios.real`: the ETH/UCY focal pedestrian, the CITR vehicle, the first
+agent of a Waymo pair) also gets :data:`learning.metrics.FOCAL_METRICS`: ``ADE_focal`` /
+``FDE_focal`` (that agent's best of the M modes: the benchmark's best of 20 with M = 20) and
+``ADE_focal_top1`` / ``FDE_focal_top1`` (its most likely mode).
+
+Subsets (:func:`parse_subset`): ``subsets=["interacting"]`` or ``["min_distance<1"]``
+scores the samples whose scalar per-sample field (shape ``()``, read for the call only:
+:meth:`learning.data.SceneDataset.sample_field`) compares so with the number, beside the
+whole split, from the same predictions (one pass of each model over the split).
 
 :func:`evaluate` scores run directories (written by :func:`learning.train.train`; their
 ``best.pt`` by default) and optionally CV on one split and returns an
@@ -26,6 +38,7 @@ import csv
 import io
 import math
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,20 +50,98 @@ from scenarios.files import ensure_dir, write_atomic
 
 from .baselines import ConstantVelocity
 from .data import SceneDataset
+from .metrics import FOCAL_METRICS
 from .models import ModelConfig
-from .scoring import METRICS, evaluate_model, predict
+from .scoring import (
+    METRICS,
+    evaluate_model,
+    mean_metrics,
+    overlap_shapes,
+    predict,
+    score_samples,
+)
 from .train import load_model, torch_threads
 
 __all__ = [
     "METRICS",
+    "FOCAL_METRICS",
+    "SUBSET_ALIASES",
     "EvalReport",
     "RunResult",
+    "Subset",
     "evaluate",
     "evaluate_model",
     "format_mean_std",
     "method_label",
+    "parse_subset",
     "predict",
 ]
+
+#: named subsets: name -> expression (:func:`parse_subset`)
+SUBSET_ALIASES = {"interacting": "min_distance<1"}
+_OPS = {
+    "<": ("lt", np.less),
+    "<=": ("le", np.less_equal),
+    ">": ("gt", np.greater),
+    ">=": ("ge", np.greater_equal),
+    "==": ("eq", np.equal),
+    "!=": ("ne", np.not_equal),
+}
+_SUBSET = re.compile(r"\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|==|!=|<|>)\s*(\S+)\s*")
+
+
+@dataclass(frozen=True)
+class Subset:
+    """Samples whose scalar field ``field`` compares by ``op`` with ``value``; ``name`` is
+    the alias or the expression as given."""
+
+    field: str
+    op: str
+    value: float
+    name: str
+
+    @property
+    def text(self) -> str:
+        """The expression, e.g. ``min_distance < 1``."""
+        return f"{self.field} {self.op} {self.value:g}"
+
+    @property
+    def slug(self) -> str:
+        """A file-name part: the alias, or e.g. ``min_distance_lt_1``."""
+        if self.name in SUBSET_ALIASES:
+            return self.name
+        return f"{self.field}_{_OPS[self.op][0]}_{self.value:g}"
+
+    def select(self, values: np.ndarray) -> np.ndarray:
+        """Boolean mask of the samples of ``values`` (the field's ``(n,)``) in the subset."""
+        with np.errstate(invalid="ignore"):
+            return _OPS[self.op][1](np.asarray(values, np.float64), self.value)
+
+
+def parse_subset(text: str) -> Subset:
+    """``FIELD OP NUMBER`` (``OP`` one of ``< <= > >= == !=``, e.g. ``min_distance<1``) or a
+    name of :data:`SUBSET_ALIASES` (``interacting`` = ``min_distance<1``: samples whose
+    recorded agents come within 1 m of each other). Whether the field exists is checked
+    against the dataset (:func:`evaluate`). A malformed expression is a
+    :class:`SpecError` ``--subset``."""
+    if not isinstance(text, str):
+        raise SpecError("--subset", f"expected FIELD<NUMBER or a name, got {text!r}")
+    expr = SUBSET_ALIASES.get(text.strip(), text)
+    m = _SUBSET.fullmatch(expr)
+    value = math.nan
+    if m:
+        try:
+            value = float(m.group(3))
+        except ValueError:
+            m = None
+    if not m or math.isnan(value):
+        raise SpecError(
+            "--subset",
+            f"expected FIELD OP NUMBER (OP one of {' '.join(_OPS)}; e.g. 'min_distance<1') or "
+            f"one of {sorted(SUBSET_ALIASES)}, got {text!r}",
+        )
+    return Subset(m.group(1), m.group(2), value, text.strip())
+
 
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
 
@@ -111,11 +202,21 @@ class RunResult:
 
 @dataclass
 class EvalReport:
-    """Results of :func:`evaluate`; :meth:`markdown` is the paper-style table."""
+    """Results of :func:`evaluate`; :meth:`markdown` is the paper-style table.
+
+    ``circles``: where the overlap rate's circles come from (the table header's words);
+    ``focal``: the focal agent's slot when the results carry :data:`FOCAL_METRICS`;
+    ``subset`` / ``total``: a report on a subset of the split (its expression, the split's
+    size); ``subsets``: the reports of the subsets of this one's split."""
 
     data_dir: str
     split: str
     results: list[RunResult] = field(default_factory=list)
+    circles: str = "the game's radii"
+    focal: int | None = None
+    subset: Subset | None = None
+    total: int | None = None
+    subsets: list[EvalReport] = field(default_factory=list)
 
     def groups(self) -> list[tuple[str, list[RunResult]]]:
         """Results grouped by label, in order of appearance, CV last."""
@@ -125,9 +226,11 @@ class EvalReport:
         return sorted(out.items(), key=lambda kv: kv[0] == "CV")
 
     def metric_names(self) -> tuple[str, ...]:
-        """:data:`METRICS`, plus ``OR_circle`` when OR used vehicle boxes."""
+        """:data:`METRICS`, plus ``OR_circle`` when OR used vehicle boxes and
+        :data:`FOCAL_METRICS` when the results have them."""
         box = any("OR_circle" in r.metrics for r in self.results)
-        return METRICS + (("OR_circle",) if box else ())
+        focal = any("ADE_focal" in r.metrics for r in self.results)
+        return METRICS + (("OR_circle",) if box else ()) + (FOCAL_METRICS if focal else ())
 
     def summary_rows(self) -> list[dict]:
         rows = []
@@ -141,17 +244,32 @@ class EvalReport:
         return rows
 
     def markdown(self) -> str:
-        """The table: one row per method, ``mean ± std`` over its runs; distances in metres."""
+        """The table: one row per method, ``mean ± std`` over its runs; distances in metres.
+        Each subset's table follows (:attr:`subsets`)."""
         n = self.results[0].samples if self.results else 0
         names = self.metric_names()
         orule = (
             "OR: oriented vehicle boxes (length x width, heading along the predicted motion); "
-            "OR_circle: circles of the game's radii"
+            f"OR_circle: circles of {self.circles}"
             if "OR_circle" in names
-            else "OR: circles of the game's radii"
+            else f"OR: circles of {self.circles}"
         )
+        if "ADE_focal" in names:
+            orule += (
+                f". ADE_focal/FDE_focal: the focal agent (slot {self.focal}), best of the "
+                "M modes; ADE_focal_top1/FDE_focal_top1: its most likely mode (joint models: "
+                "the scene probability's argmax; marginal: its own mode probabilities)"
+            )
+        where = f"Split `{self.split}` of `{self.data_dir}` ({n} samples)"
+        if self.subset is not None:
+            s = self.subset
+            named = f"`{s.name}` (`{s.text}`)" if s.name in SUBSET_ALIASES else f"`{s.text}`"
+            where = (
+                f"Subset {named} of split `{self.split}` of `{self.data_dir}` ({n} of "
+                f"{self.total} samples)"
+            )
         lines = [
-            f"Split `{self.split}` of `{self.data_dir}` ({n} samples). minADE/minFDE marginal, "
+            f"{where}. minADE/minFDE marginal, "
             "minSADE/minSFDE/OR joint; metres; lower is better; mean ± std (ddof 1) over runs. "
             f"{orule}.",
             "",
@@ -161,23 +279,30 @@ class EvalReport:
         for label, rs in self.groups():
             cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in names]
             lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
-        return "\n".join(lines) + "\n"
+        return "\n".join(lines) + "\n" + "".join("\n" + sub.markdown() for sub in self.subsets)
 
     def write(self, prefix: str | os.PathLike) -> list[Path]:
-        """``PREFIX.md`` (table), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per run).
+        """``PREFIX.md`` (the tables), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per
+        run); for each subset ``PREFIX_<slug>.csv`` and ``PREFIX_<slug>_runs.csv``
+        (:attr:`Subset.slug`, e.g. ``results_interacting_runs.csv``; rows with a ``subset``
+        column, the expression).
 
         Each file is written atomically (:func:`scenarios.files.write_atomic`): a folder
         that cannot be written is one :class:`~epo_casadi.errors.OutputError` naming the
         file, and no partial file is left."""
         p = Path(prefix)
         ensure_dir(p.parent)
-        md, summ, runs = (
-            p.with_name(p.name + ".md"),
-            p.with_name(p.name + ".csv"),
-            p.with_name(p.name + "_runs.csv"),
-        )
+        md = p.with_name(p.name + ".md")
         write_atomic(md, self.markdown())
-        _csv(summ, self.summary_rows())
+        paths = [md, *self._write_csv(p)]
+        for sub in self.subsets:
+            paths += sub._write_csv(p.with_name(f"{p.name}_{sub.subset.slug}"))
+        return paths
+
+    def _write_csv(self, p: Path) -> list[Path]:
+        summ, runs = p.with_name(p.name + ".csv"), p.with_name(p.name + "_runs.csv")
+        where = {} if self.subset is None else {"subset": self.subset.text}
+        _csv(summ, [{**where, **row} for row in self.summary_rows()])
         _csv(
             runs,
             [
@@ -188,6 +313,7 @@ class EvalReport:
                     "seed": r.seed,
                     "epoch": r.epoch,
                     "split": self.split,
+                    **where,
                     "samples": r.samples,
                     **r.metrics,
                     "seconds": round(r.seconds, 3),
@@ -195,7 +321,7 @@ class EvalReport:
                 for r in self.results
             ],
         )
-        return [md, summ, runs]
+        return [summ, runs]
 
 
 def _csv(path: Path, rows: list[dict]) -> None:
@@ -216,14 +342,20 @@ def evaluate(
     checkpoint: str = "best",
     progress: bool = False,
     threads: int | None = 1,
+    subsets=(),
 ) -> EvalReport:
     """Score run directories (and CV with ``cv=True``) on ``split`` of ``data_dir``.
 
     A run given twice (the same folder after resolving links and ``..``) is refused
     with :class:`SpecError` (field ``runs``): it would count twice in its method's
     mean ± std. ``threads``: torch threads during the call
-    (:func:`learning.train.torch_threads`).
+    (:func:`learning.train.torch_threads`). ``subsets``: expressions or names
+    (:func:`parse_subset`) of subsets also scored (:attr:`EvalReport.subsets`); a field
+    the dataset does not have as one number per sample is refused naming it
+    (:class:`SpecError` ``--subset``), before any model runs. The focal metrics are
+    reported when the manifest's ``meta.focal_slot`` names an agent slot.
     """
+    subsets = [parse_subset(s) if isinstance(s, str) else s for s in subsets]
     runs = [runs] if isinstance(runs, (str, os.PathLike)) else list(runs or [])
     if not runs and not cv:
         raise SpecError("runs", "expected at least one run directory (or cv=True)")
@@ -239,41 +371,67 @@ def evaluate(
             )
         seen[key] = str(run)
     with torch_threads(threads):
-        return _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress)
+        return _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress, subsets)
 
 
-def _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress) -> EvalReport:
+def focal_slot(data: SceneDataset) -> int | None:
+    """The manifest's ``meta.focal_slot`` (an agent slot), or None without one; a value that
+    is not a slot of the dataset's agents is a :class:`DatasetError` naming it."""
+    from scenarios.dataset import MANIFEST, DatasetError
+
+    v = (data.manifest.get("meta") or {}).get("focal_slot")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < data.n_agents:
+        raise DatasetError(
+            f"{data.directory / MANIFEST}.meta.focal_slot",
+            f"expected an agent slot in [0, {data.n_agents}), got {v!r}",
+        )
+    return v
+
+
+def _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress, subsets):
     data = SceneDataset(data_dir, split)
-    if len(data) == 0:
-        data.close()
-        raise SpecError("split", f"split {split!r} of {data_dir} has no samples")
-    game = data.game
-    report = EvalReport(str(data_dir), split)
     try:
+        if len(data) == 0:
+            raise SpecError("split", f"split {split!r} of {data_dir} has no samples")
+        scalars = data.scalar_fields()
+        for s in subsets:
+            if s.field not in scalars:
+                raise SpecError(
+                    "--subset",
+                    f"{s.name!r}: no field {s.field!r} of one number per sample in {data_dir}; "
+                    f"the scalar per-sample fields: {scalars}",
+                )
+        masks = [s.select(data.sample_field(s.field)) for s in subsets]
+        game = data.game
+        focal = focal_slot(data)
+        _, circles = overlap_shapes(data)
+        report = EvalReport(str(data_dir), split, circles=circles, focal=focal)
+        report.subsets = [
+            EvalReport(
+                str(data_dir), split, circles=circles, focal=focal, subset=s, total=len(data)
+            )
+            for s in subsets
+        ]
+
+        def score(model, name, label, kind, seed, epoch):
+            t0 = time.perf_counter()
+            per = score_samples(model, data, batch_size, progress, focal)
+            seconds = time.perf_counter() - t0
+            for rep, sel in [(report, None), *zip(report.subsets, masks, strict=True)]:
+                m = mean_metrics(per, sel)
+                rep.results.append(
+                    RunResult(name, label, kind, seed, epoch, int(m.pop("samples")), m, seconds)
+                )
+
         for run in runs:
             model, cfg, ck = load_model(run, game, which=checkpoint)
-            t0 = time.perf_counter()
-            m = evaluate_model(model, data, batch_size, progress)
-            report.results.append(
-                RunResult(
-                    str(run),
-                    method_label(cfg.model),
-                    cfg.model.kind,
-                    cfg.seed,
-                    int(ck["epoch"]),
-                    int(m.pop("samples")),
-                    m,
-                    time.perf_counter() - t0,
-                )
+            score(
+                model, str(run), method_label(cfg.model), cfg.model.kind, cfg.seed, int(ck["epoch"])
             )
         if cv:
-            t0 = time.perf_counter()
-            m = evaluate_model(ConstantVelocity(game.K, data.modes), data, batch_size, progress)
-            report.results.append(
-                RunResult(
-                    "cv", "CV", "cv", None, None, int(m.pop("samples")), m, time.perf_counter() - t0
-                )
-            )
+            score(ConstantVelocity(game.K, data.modes), "cv", "CV", "cv", None, None)
     finally:
         data.close()
     return report

@@ -21,7 +21,10 @@ Definitions (``d = ||pred - gt||_2`` per agent and step):
 - overlap rate ``OR``: share of samples whose most likely joint prediction has two agents
   overlapping at some step. Two definitions:
 
-  * circles (:func:`overlap_rate`): ``dist < r_i + r_j``, the radii of the dataset's game;
+  * circles (:func:`overlap_rate`): ``dist < r_i + r_j``; ``radii`` ``(N,)`` or ``(B, N)``:
+    :func:`learning.scoring.evaluate_model` passes each sample's ``radius`` where the
+    dataset stores it and the game takes it as a parameter (``AgentSpec.radius_param``: the
+    recorded-data readers, exiD with ``radius_per_agent``), else the radii of the game;
   * oriented boxes (:func:`overlap_rate_boxes`, Waymo / JFP style): each agent a
     ``length x width`` rectangle centred on its predicted position, heading along its
     predicted direction of motion; two agents overlap when their rectangles intersect
@@ -29,9 +32,21 @@ Definitions (``d = ||pred - gt||_2`` per agent and step):
 
   **Which one a table uses**: :func:`all_metrics` (and so ``epo evaluate`` / validation)
   reports ``OR`` with boxes when the batch gives each agent's length and width (exiD-layout
-  datasets, fields ``length`` and ``width``) and then also the circle OR as ``OR_circle``;
-  datasets without those fields (RPI, left turn) get circles. ``epo evaluate`` writes the
-  definition into its table header.
+  and Waymo datasets, fields ``length`` and ``width``) and then also the circle OR as
+  ``OR_circle``; datasets without those fields (RPI, left turn, ETH/UCY, CITR) get circles.
+  ``epo evaluate`` writes the definition into its table header.
+
+Focal-agent metrics (:func:`focal_errors`; the ETH/UCY benchmark's ADE / FDE, scored on
+one agent per sample, the one in slot ``focal``):
+
+- ``ADE_focal`` / ``FDE_focal``: the smallest, over the ``M`` modes, mean over time (or
+  final-step) distance of the focal agent: "best of M" (best of 20 with ``M = 20``); the
+  two minima are taken separately, as the benchmark does;
+- ``ADE_focal_top1`` / ``FDE_focal_top1``: the focal agent's errors in the most likely mode:
+  the argmax of the scene probabilities (joint models), or of the focal agent's own mode
+  probabilities (marginal models); ties: the lower mode index.
+
+A sample whose focal slot is not a real agent (``mask`` False) gets NaN there.
 
 Marginal models have one probability per agent and mode; their joint scenes are built
 as the paper describes, by ordering each agent's modes by its marginal probability and
@@ -42,6 +57,8 @@ All functions return one value per sample (``(B,)``); average with ``.mean()``.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -56,8 +73,13 @@ __all__ = [
     "box_overlap",
     "motion_headings",
     "marginal_to_joint",
+    "focal_errors",
     "all_metrics",
+    "FOCAL_METRICS",
 ]
+
+#: the focal-agent metrics (:func:`focal_errors`)
+FOCAL_METRICS = ("ADE_focal", "FDE_focal", "ADE_focal_top1", "FDE_focal_top1")
 
 
 def _t(a) -> torch.Tensor:
@@ -303,16 +325,56 @@ def marginal_to_joint(pred, probs, mask=None):
     return joint, p / p.sum(-1, keepdim=True).clamp_min(1e-12)
 
 
-def all_metrics(pred, gt, probs, radii, mask=None, boxes=None) -> dict[str, torch.Tensor]:
+def focal_errors(pred, gt, probs, focal: int = 0, mask=None) -> dict[str, torch.Tensor]:
+    """The focal agent's errors per sample (module docstring): :data:`FOCAL_METRICS`, each
+    ``(B,)`` metres. ``probs`` joint ``(B, M)`` (top-1: the scene probability's argmax) or
+    marginal ``(B, N, M)`` (top-1: the focal agent's own argmax); ``pred`` ``(B, M, N, T, 2)``
+    holds the modes as the model gives them (for marginal models agent ``i``'s ``m``-th mode
+    at ``[:, m, i]``). ``mask`` ``(B, N)``: NaN where the focal slot is a pad."""
+    pred, gt, mask = _check(pred, gt, mask)
+    probs = _t(probs)
+    B, M, N = pred.shape[:3]
+    if isinstance(focal, bool) or not isinstance(focal, int) or not 0 <= focal < N:
+        raise ValueError(f"focal: expected an agent slot in [0, {N}), got {focal!r}")
+    if probs.shape == (B, N, M):
+        top = probs[:, focal].argmax(dim=-1)
+    elif probs.shape == (B, M):
+        top = probs.argmax(dim=-1)
+    else:
+        raise ValueError(
+            f"probs: expected shape {(B, M)} (joint) or {(B, N, M)} (marginal), "
+            f"got {tuple(probs.shape)}"
+        )
+    d = torch.linalg.vector_norm(pred[:, :, focal] - gt[:, None, focal], dim=-1)  # (B, M, T)
+    ade, fde = d.mean(-1), d[..., -1]
+    rows = torch.arange(B, device=pred.device)
+    out = {
+        "ADE_focal": ade.min(dim=1).values,
+        "FDE_focal": fde.min(dim=1).values,
+        "ADE_focal_top1": ade[rows, top.to(pred.device)],
+        "FDE_focal_top1": fde[rows, top.to(pred.device)],
+    }
+    real = mask[:, focal].to(pred.device)
+    nan = torch.full((), math.nan, dtype=ade.dtype, device=ade.device)
+    return {k: torch.where(real, v, nan) for k, v in out.items()}
+
+
+def all_metrics(
+    pred, gt, probs, radii, mask=None, boxes=None, focal: int | None = None
+) -> dict[str, torch.Tensor]:
     """Every metric per sample; ``probs`` joint ``(B, M)`` or marginal ``(B, N, M)``.
 
-    ``boxes``: None (``OR`` with the circles of ``radii``), or a dict with ``length`` and
-    ``width`` ``(B, N)`` and optionally ``start`` ``(B, N, 2)`` and ``heading0`` ``(B, N)``
+    ``radii`` ``(N,)`` or ``(B, N)``: the circles of the overlap rate. ``boxes``: None
+    (``OR`` with the circles of ``radii``), or a dict with ``length`` and ``width``
+    ``(B, N)`` and optionally ``start`` ``(B, N, 2)`` and ``heading0`` ``(B, N)``
     (:func:`overlap_rate_boxes`): then ``OR`` is the box overlap rate and ``OR_circle``
-    the circle one.
+    the circle one. ``focal``: an agent slot: adds :data:`FOCAL_METRICS`
+    (:func:`focal_errors`).
     """
     probs = _t(probs)
     marginal = {"minADE": min_ade(pred, gt, mask), "minFDE": min_fde(pred, gt, mask)}
+    if focal is not None:
+        marginal.update(focal_errors(pred, gt, probs, focal, mask))
     if probs.ndim == 3:
         pred, probs = marginal_to_joint(pred, probs, mask)
     out = {

@@ -9,6 +9,16 @@ generated the sample as black markers. The game's solution is invariant to a com
 scale of all weights, so compare ratios between features, not absolute heights.
 Padded agents (the sample's ``agents_mask`` False) are not drawn: no history, truth,
 prediction, goal or weight panel, and the view fits the real agents only.
+
+Recorded data (a dataset with the ``origin`` field: the readers of :mod:`scenarios.real`)
+is drawn over the real scene (:func:`_draw_recorded`): in the recording's world frame
+(``frame="world"``, the origin added back; ``"scene"``: the sample's frame), the lane map
+where the sample has ``lanes`` (Waymo; empty slots of ``lanes_mask`` left out), the other
+recorded agents of the figure-only field ``others`` in grey (observed part solid, future
+dotted; ETH/UCY, CITR), each real agent's history solid and its truth dashed, and every
+predicted joint mode coloured by its probability (a colour bar; the most likely mode
+thickest and named in the legend, with its decoded goals for ours). Ours' weight panels
+then show the five most likely modes.
 """
 
 from __future__ import annotations
@@ -20,7 +30,7 @@ import numpy as np
 import torch
 
 from epo_casadi.errors import SpecError
-from scenarios.dataset import SplitReader, check_index
+from scenarios.dataset import SplitReader, check_index, read_manifest
 
 from .baselines import ConstantVelocity
 from .data import SceneDataset
@@ -174,13 +184,17 @@ def _fit_view(ax, pts: np.ndarray) -> None:
     ax.set_ylabel("y (m)")
 
 
-def _draw_weights(fig, gs, out, game, raw, probs, agents, real) -> None:
+def _draw_weights(fig, gs, out, game, raw, probs, agents, real, modes=None, colors=None) -> None:
     """Ours' predicted game weights per mode (one panel per real agent, one pairwise for the
     pairs of real agents), log scale, with the dataset game's weights where the sample
-    stores them."""
+    stores them. ``modes``: the modes drawn (all without), ``colors``: a colour per mode
+    (:data:`MODE_COLORS` without)."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    M = len(probs)
+    modes = list(range(len(probs))) if modes is None else [int(m) for m in modes]
+    if colors is None:
+        colors = [MODE_COLORS[m % len(MODE_COLORS)] for m in range(len(probs))]
+    M = len(modes)
     p = out["params"][0].detach().numpy()  # (M, n_p)
     names = list(game.params.names)
     true = (
@@ -204,12 +218,12 @@ def _draw_weights(fig, gs, out, game, raw, probs, agents, real) -> None:
         axw = fig.add_subplot(gs[row, 1])
         x = np.arange(len(idx))
         width = 0.8 / M
-        for m in range(M):
+        for j, m in enumerate(modes):
             axw.bar(
-                x + (m - (M - 1) / 2) * width,
+                x + (j - (M - 1) / 2) * width,
                 p[m, idx],
                 width,
-                color=MODE_COLORS[m % len(MODE_COLORS)],
+                color=colors[m],
                 label=f"mode {m} (p={probs[m]:.2f})",
             )
         if true is not None:
@@ -228,6 +242,118 @@ def _draw_weights(fig, gs, out, game, raw, probs, agents, real) -> None:
             axw.legend(fontsize=7, ncol=M + 1, loc="lower left", bbox_to_anchor=(0, 1.12))
 
 
+#: modes drawn in ours' weight panels of a recorded-data figure (the most likely ones)
+RECORDED_WEIGHT_MODES = 5
+
+
+def _sample_info(meta: dict, raw: dict) -> list[str]:
+    """Where a recorded sample comes from, for the title: scene / clip / scenario, frame."""
+    info = []
+    for key, names in (("scene", "scenes"), ("clip", "clips"), ("scenario", "scenarios")):
+        if key in raw and isinstance(meta.get(names), list):
+            i = int(raw[key])
+            if 0 <= i < len(meta[names]):
+                info.append(f"{key} {meta[names][i]}")
+    if "frame" in raw:
+        info.append(f"frame {int(raw['frame'])}")
+    return info
+
+
+def _draw_recorded(ax, fig, game, batch, raw, agents, gt, pos, probs, out, offset):
+    """The real scene of a recorded sample with the predicted modes (module docstring);
+    returns ``(points to fit, colour per mode)``."""
+    import matplotlib
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.patches import Circle
+
+    hist = batch["history"][0].numpy()[..., :2] + offset  # (H+1, N, 2)
+    H1 = hist.shape[0]
+    real = _real_agents(batch)
+    gt = gt + offset
+    pos = pos + offset
+    # ---- the lane map (Waymo)
+    if "lanes" in batch:
+        lanes = batch["lanes"][0].numpy() + offset
+        lmask = batch["lanes_mask"][0].numpy() if "lanes_mask" in batch else None
+        keep = np.arange(len(lanes)) if lmask is None else np.flatnonzero(lmask)
+        for n, k in enumerate(keep):
+            ax.plot(*lanes[k].T, "-", color="0.85", lw=4, zorder=0, label=None if n else "lanes")
+    # ---- the other recorded agents (ETH/UCY, CITR): observed solid, future dotted
+    if "others" in raw:
+        o = np.asarray(raw["others"], np.float64) + offset  # (C, H+1+T, 2), NaN: absent
+        seen = fut = False
+        for c in range(o.shape[0]):
+            a, b = o[c, :H1], o[c, H1 - 1 :]
+            if np.isfinite(a).all(-1).any():
+                ax.plot(
+                    a[:, 0], a[:, 1], "-", color="0.55", lw=1.2, marker="o", ms=3,
+                    markevery=[H1 - 1], zorder=1,
+                    label=None if seen else "other recorded agents (observed)",
+                )  # fmt: skip
+                seen = True
+            if np.isfinite(b).all(-1).any():
+                ax.plot(
+                    b[:, 0], b[:, 1], ":", color="0.7", lw=1.2, zorder=1,
+                    label=None if fut else "other recorded agents (future)",
+                )  # fmt: skip
+                fut = True
+    # ---- the modes, coloured by probability, the most likely last (on top)
+    cmap = matplotlib.colormaps["plasma_r"]
+    top = float(probs.max()) if probs.size else 1.0
+    norm = Normalize(0.0, max(top, 1e-9))
+    colors = [cmap(norm(float(p))) for p in probs]
+    best = int(np.argmax(probs))  # ties: the lower mode, as the metrics' top-1
+    order = [int(m) for m in np.argsort(probs, kind="stable") if m != best] + [best]
+    for m in order:
+        sade = float(np.linalg.norm(pos[m, real] - gt[real], axis=-1).mean())
+        w = float(norm(float(probs[m])))
+        if m == best:
+            label = f"most likely mode {m}: p={probs[m]:.2f}, SADE {sade:.2f} m"
+        else:
+            label = "other modes (colour: probability)" if m == order[0] else None
+        for n, i in enumerate(real):
+            xy = np.concatenate([hist[-1:, i], pos[m, i]])
+            ax.plot(
+                xy[:, 0], xy[:, 1], "-", color=colors[m], lw=2.8 if m == best else 0.8 + 1.2 * w,
+                alpha=1.0 if m == best else 0.35 + 0.5 * w, zorder=3 if m == best else 2,
+                label=label if n == 0 else None,
+            )  # fmt: skip
+    sm = ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, ax=ax, shrink=0.5, pad=0.02, label="mode probability")
+    decoded = None
+    if isinstance(out, dict) and out.get("decoded_goals", False):
+        decoded = out["goals"][0].detach().numpy()[best, real] + offset  # (n_real, 2)
+        ax.plot(
+            decoded[:, 0], decoded[:, 1], "P", color=colors[best], ms=11, mec="k", zorder=4,
+            label="most likely mode's decoded goals",
+        )  # fmt: skip
+    # ---- the agents: history solid, truth dashed, the circle of the sample's radius
+    radius = raw.get("radius")
+    for n, i in enumerate(real):
+        c = AGENT_COLORS[i % len(AGENT_COLORS)]
+        ax.plot(
+            hist[:, i, 0],
+            hist[:, i, 1],
+            "-",
+            color=c,
+            lw=2.2,
+            zorder=5,
+            label=f"{agents[i]} history",
+        )
+        r = float(radius[i]) if radius is not None else float(game.agents[i].radius)
+        ax.add_patch(Circle(hist[-1, i], max(r, 0.05), fc="none", ec=c, lw=1.5, zorder=5))
+        xy = np.concatenate([hist[-1:, i], gt[i]])
+        ax.plot(
+            xy[:, 0], xy[:, 1], "--", color="0.1", lw=2.0, zorder=5,
+            label="ground truth" if n == 0 else None,
+        )  # fmt: skip
+    pts = [hist[:, real].reshape(-1, 2), gt[real].reshape(-1, 2), pos[:, real].reshape(-1, 2)]
+    if decoded is not None:
+        pts.append(decoded.reshape(-1, 2))
+    return np.concatenate(pts), colors
+
+
 def show_predictions(
     run_dir: str | os.PathLike,
     data_dir: str | os.PathLike,
@@ -235,11 +361,16 @@ def show_predictions(
     out_png: str | os.PathLike,
     split: str = "test",
     checkpoint: str = "best",
+    frame: str = "world",
 ) -> Path:
-    """Draw sample ``index`` of ``split`` with the predictions of a run (or ``"cv"``) to ``out_png``."""
+    """Draw sample ``index`` of ``split`` with the predictions of a run (or ``"cv"``) to
+    ``out_png``. ``frame``: ``"world"`` or ``"scene"``, for recorded data (a dataset with
+    ``origin``; module docstring)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    if frame not in ("world", "scene"):
+        raise SpecError("frame", f"expected 'world' or 'scene', got {frame!r}")
     game, batch, raw, agents = load_sample(data_dir, split, index)
     model, label, kind = _model_of(run_dir, game, int(raw["future"].shape[0]), checkpoint)
     with torch.no_grad():
@@ -252,6 +383,7 @@ def show_predictions(
     real = _real_agents(batch)  # padded agents are not drawn
     N = len(real)
     show_weights = kind == "epo"
+    recorded = "origin" in raw
 
     fig = Figure(figsize=(14 if show_weights else 7.5, 8))
     FigureCanvasAgg(fig)
@@ -261,19 +393,36 @@ def show_predictions(
         ax = fig.add_subplot(gs[:, 0])
     else:
         ax = fig.add_subplot(1, 1, 1)
-    _draw_scene(ax, game, batch, raw, agents, gt)
-    given_goals = batch["goals"][0].numpy()[real] if "goals" in batch else None
-    decoded = _draw_modes(ax, out, pos, probs, hist, gt, real)
-    pts = np.concatenate(
-        [hist[:, real, :2].reshape(-1, 2), gt[real].reshape(-1, 2), pos[:, real].reshape(-1, 2)]
-        + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
-    )
+    colors = wmodes = None
+    if recorded:
+        offset = np.asarray(raw["origin"], np.float64) if frame == "world" else np.zeros(2)
+        pts, colors = _draw_recorded(ax, fig, game, batch, raw, agents, gt, pos, probs, out, offset)
+        wmodes = np.argsort(-probs, kind="stable")[:RECORDED_WEIGHT_MODES]
+        meta = read_manifest(data_dir).get("meta") or {}
+        info = [f"{split}[{index}]", *_sample_info(meta, raw), f"{frame} frame"]
+    else:
+        _draw_scene(ax, game, batch, raw, agents, gt)
+        given_goals = batch["goals"][0].numpy()[real] if "goals" in batch else None
+        decoded = _draw_modes(ax, out, pos, probs, hist, gt, real)
+        pts = np.concatenate(
+            [
+                hist[:, real, :2].reshape(-1, 2),
+                gt[real].reshape(-1, 2),
+                pos[:, real].reshape(-1, 2),
+            ]
+            + [g.reshape(-1, 2) for g in (given_goals, decoded) if g is not None]
+        )
+        info = [f"{split}[{index}]"]
+        info += [f"{k} {int(raw[k])}" for k in ("main_game", "step") if k in raw]
     _fit_view(ax, pts)
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=2, framealpha=0.9)
-    info = [f"{split}[{index}]"] + [f"{k} {int(raw[k])}" for k in ("main_game", "step") if k in raw]
+    if recorded and frame == "world":
+        ax.set_xlabel("x (m, recording frame)")
+        ax.set_ylabel("y (m, recording frame)")
+    below = -0.14 if recorded else -0.09  # under the axis label
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, below), ncol=2, framealpha=0.9)
     ax.set_title(f"{label}: " + ", ".join(info), fontsize=11)
     if show_weights:
-        _draw_weights(fig, gs, out, game, raw, probs, agents, set(real.tolist()))
+        _draw_weights(fig, gs, out, game, raw, probs, agents, set(real.tolist()), wmodes, colors)
     from scenarios.plotting import save_figure
 
     return save_figure(fig, Path(out_png), "out_png", dpi=100, bbox_inches="tight")

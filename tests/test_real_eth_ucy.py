@@ -306,11 +306,39 @@ def test_padding_of_small_scenes(tmp_path):
     assert (s["history"][:, :, 2:] == 0).all() and (s["future"][:, :, 2:] == 0).all()
     assert (s["track_id"][:, 2:] == -1).all() and sorted(s["track_id"][:, 0].tolist()) == [1, 2]
     assert s["radius"].tolist() == [[pytest.approx(0.3), pytest.approx(0.3), 0.0, 0.0]] * 2
-    assert (s["length"] == 0).all() and (s["width"] == 0).all() and (s["agent_kind"] == 0).all()
+    # no recorded size: no length / width fields (the overlap rate uses circles of radius)
+    assert "length" not in s and "width" not in s and (s["agent_kind"] == 0).all()
+    assert "length" not in sc.schema() and sc.meta()["focal_slot"] == 0
+    assert s["others"].shape == (2, 16, 8 + 12, 2) and np.isnan(s["others"]).all()  # no other
     assert not (s["history"][:, :, :2] == 0).all()
     one = samples(sc, "biwi_hotel.txt")  # alone: slot 0 only, min_distance inf
     assert one["agents_mask"].tolist() == [[True, False, False, False]]
     assert np.isinf(one["min_distance"]).all()
+
+
+def test_others_are_the_nearest_pedestrians_left_out(tmp_path):
+    """The figure-only field ``others``: the pedestrians not in the scene, nearest the focal
+    one at a common step of the window first (ties: the lower id), at their recorded
+    positions in the scene frame, NaN where not recorded (also one too short for a scene)."""
+    rows = lanes(5, 20) + walk(9, 4, (1.2, -1.0), (0.4, 0), f0=30)  # 9: rows 3 .. 6 only
+    raw = make_dir(tmp_path / "raw", {"biwi_eth.txt": rows, "biwi_hotel.txt": lanes(2, 20)})
+    sc = scenario(raw, val_fraction=0, agents=2, context_agents=4)
+    s = samples(sc, "biwi_eth.txt")
+    assert s["others"].shape == (5, 4, H + 1 + T, 2)
+    k = np.arange(H + 1 + T)
+    for ped, chosen, order in ((1, 2, [9, 3, 4, 5]), (3, 2, [4, 1, 5, 9])):
+        (i,) = focal(s, ped)
+        assert s["track_id"][i].tolist() == [ped, chosen]
+        origin = np.array([0.4 * H, 2.0 * (ped - 1)])
+        for c, other in enumerate(order):
+            want = np.full((H + 1 + T, 2), np.nan)
+            if other == 9:
+                want[3:7] = np.stack([0.4 * k[3:7], np.full(4, -1.0)], 1)
+            else:
+                want[:] = np.stack([0.4 * k, np.full(k.size, 2.0 * (other - 1))], 1)
+            np.testing.assert_allclose(s["others"][i, c], want - origin, atol=1e-5)
+    sc0 = scenario(raw, val_fraction=0, agents=2, context_agents=0)
+    assert "others" not in sc0.schema() and "others" not in samples(sc0, "biwi_eth.txt")
 
 
 def test_gaps_split_tracks(tmp_path):

@@ -309,9 +309,11 @@ def test_padding_and_the_interaction_rule(tmp_path, capsys):
     assert (s["agents_mask"] == [True, True, True, True, False]).all()
     assert (s["agent_kind"] == [1, 0, 0, 0, 0]).all()
     assert np.allclose(s["radius"], [1.1, 0.3, 0.3, 0.3, 0.0])
-    assert np.allclose(s["length"], [2.2, 0, 0, 0, 0]) and np.allclose(
-        s["width"], [1.2, 0, 0, 0, 0]
-    )
+    # no length / width fields (pedestrians have no recorded size: circles of radius); the
+    # cart's size is in the meta
+    assert "length" not in s and "width" not in s and m["meta"]["focal_slot"] == 0
+    assert m["meta"]["vehicle_size"] == {"length": 2.2, "width": 1.2}
+    assert s["others"].shape == (n, 16, 6, 2) and np.isnan(s["others"]).all()  # all in scene
     assert not s["history"][:, :, 4].any() and not s["future"][:, :, 4].any()
     # pedestrian 5 in the scene frame: its recorded position minus the cart's; speed, heading
     t = s["time"]
@@ -328,6 +330,16 @@ def test_padding_and_the_interaction_rule(tmp_path, capsys):
     # N = 3: the two closest approaches (head on 0.5 m, beside 5 m) win over the far one
     d, _ = generate(capsys, raw, tmp_path / "o3", "--fps", fps, "--agents", 3, *SMALL)
     assert (d["train"]["track_id"] == [7, 5, 3]).all()
+    # others (figures only): pedestrian 9, the one left out, standing at (-20, 30) over the
+    # whole window, in the scene frame (the cart's current position subtracted); no more
+    o, origin = d["train"]["others"], d["train"]["origin"]
+    assert o.shape == (n, 16, 6, 2) and np.isnan(o[:, 1:]).all()
+    assert np.allclose(o[:, 0], np.array([-20.0, 30.0]) - origin[:, None], atol=1e-4)
+    d, _ = generate(
+        capsys, raw, tmp_path / "o0", "--fps", fps, "--agents", 3, *SMALL,
+        "--set", "context_agents=0",
+    )  # fmt: skip
+    assert "others" not in d["train"]
 
 
 def test_split_by_clip_within_every_type(tmp_path):

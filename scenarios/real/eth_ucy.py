@@ -28,7 +28,12 @@ Scenes (:func:`scenarios.real.scenes.window_scenes`)
     prediction window (observed positions only, so the future does not enter the choice;
     ties: the lower id). A scene with fewer recorded pedestrians is padded
     (``agents_mask``). Positions are relative to the focal pedestrian's current position
-    (``origin``); speeds and headings are backward differences of positions.
+    (``origin``); speeds and headings are backward differences of positions. The focal
+    pedestrian is slot 0 (``meta.focal_slot``: the benchmark's ADE / FDE are its errors).
+    No ``length`` / ``width`` (no size is recorded: the overlap rate uses circles of
+    ``radius``). ``others`` (figures only, ``context_agents`` of them): the nearest other
+    pedestrians of the file over the window, NaN where not recorded
+    (:mod:`scenarios.real.scenes`, "Context agents").
 
 Scenes and splits
     Each file belongs to a scene: ``biwi_eth.txt`` eth, ``biwi_hotel.txt`` hotel,
@@ -297,6 +302,8 @@ class EthUcyRecipe(SceneRecipe):
     raw_digest: str = ""  #: sha256 of the files' names and contents
     test_scene: str = "eth"  #: the left-out scene (one of SCENES)
     val_fraction: float = 0.1  #: the last share of each training file's frame span is val
+    #: figures only: the ``others`` field holds this many other pedestrians (0: no field)
+    context_agents: int = 16
 
     def __post_init__(self):
         super().__post_init__()
@@ -339,6 +346,7 @@ class EthUcyRecipe(SceneRecipe):
                 f"{p}.test_scene", f"expected one of {list(SCENES)}, got {self.test_scene!r}"
             )
         check_number(f"{p}.val_fraction", self.val_fraction, lo=0.0, hi=0.9)
+        check_number(f"{p}.context_agents", self.context_agents, lo=0, hi=256, integer=True)
 
     def to_dict(self) -> dict:
         d = super().to_dict()
@@ -511,7 +519,10 @@ class EthUcyScenario(Scenario):
 
     def schema(self) -> dict[str, FieldSpec]:
         r = self.recipe
-        out = scene_schema(r.agents, r.history, r.horizon, r.modes)
+        # no length / width: pedestrians have no recorded size (circles of `radius` instead)
+        out = scene_schema(
+            r.agents, r.history, r.horizon, r.modes, sizes=False, context=r.context_agents
+        )
         out["scene"] = FieldSpec((), "int16", "index in meta.scenes")
         out["file"] = FieldSpec((), "int16", "index in meta.files (recipe.files)")
         return out
@@ -547,6 +558,7 @@ class EthUcyScenario(Scenario):
             "state": ["x", "y", "v", "theta"],
             "kinds": ["pedestrian"],
             "agents": [f"a{i}" for i in range(r.agents)],
+            "focal_slot": 0,
             "scenes": self.scenes,
             "test_scene": r.test_scene,
             "files": files,
@@ -591,6 +603,7 @@ class EthUcyScenario(Scenario):
             dt=r.dt,
             stride=r.stride,
             max_distance=r.max_distance,
+            context=r.context_agents,
         )
         extra = {"scene": self.scenes.index(r.files[fi][1]), "file": fi}
         return stack_scenes(scenes, self.schema(), r.radius, extra=extra)

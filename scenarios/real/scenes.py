@@ -38,6 +38,20 @@ Padding
 Scene frame
     Positions are stored relative to ``origin`` (``(2,)`` float64): the focal agent's
     current position in the recording's frame. The axes stay those of the recording.
+
+Sizes
+    ``length`` / ``width`` (``(N,)``) are written only by readers that record a size for
+    every agent (``scene_schema(..., sizes=True)``, Waymo). A reader without sizes for some
+    agents (ETH/UCY, the pedestrians of CITR) leaves both fields out, so the overlap rate of
+    :mod:`learning.metrics` uses circles of the sample's ``radius`` instead of boxes of
+    size 0.
+
+Context agents (figures only)
+    ``window_scenes(..., context=C)`` adds ``others`` ``(C, H+1+T, 2)`` to each scene: the
+    positions (scene frame, NaN where not recorded) over the whole window of the ``C``
+    recorded agents that are not in the scene and come nearest to the focal agent at a
+    common step of the window (ties: the lower id; fewer: NaN rows). It reads the future and
+    is drawn by :func:`learning.show.show_predictions` only; no model or metric reads it.
 """
 
 from __future__ import annotations
@@ -178,6 +192,7 @@ def window_scenes(
     max_distance: float = math.inf,
     focal_ids: Sequence[int] | None = None,
     candidate_ids: Sequence[int] | None = None,
+    context: int = 0,
 ) -> list[dict]:
     """Every scene of ``tracks`` (pieces without gaps on a grid of ``step`` frames).
 
@@ -187,7 +202,9 @@ def window_scenes(
     limits the focal agents (default: all), ``candidate_ids`` the others (default: all).
     Returns scene dicts (the per-scene fields of :func:`scene_schema` without ``future``'s
     mode axis): ``history`` ``(H+1, N, 4)``, ``gt`` ``(N, T, 4)``, ``agents_mask``,
-    ``track_id``, ``kind``, ``length``, ``width``, ``frame``, ``origin``, ``min_distance``.
+    ``track_id``, ``kind``, ``length``, ``width``, ``frame``, ``origin``, ``min_distance``;
+    with ``context`` C > 0 also ``others`` ``(C, H+1+T, 2)`` (module docstring, "Context
+    agents"; every piece of ``tracks`` counts, also one shorter than the window).
     """
     H, T, N = int(history), int(horizon), int(agents)
     span = (H + T) * step
@@ -196,6 +213,7 @@ def window_scenes(
         return []
     focal_set = None if focal_ids is None else {int(i) for i in focal_ids}
     cand_set = None if candidate_ids is None else {int(i) for i in candidate_ids}
+    rows = _rows(tracks) if context > 0 else None
     starts = np.array([p.frames[0] for p in pieces], np.int64)
     ends = np.array([p.frames[-1] for p in pieces], np.int64)
     ids = np.array([p.id for p in pieces], np.int64)
@@ -214,7 +232,47 @@ def window_scenes(
                 for j in np.flatnonzero(cover)
                 if ids[j] != fp.id and (cand_set is None or ids[j] in cand_set)
             ]
-            out.append(_cut(fp, [pieces[j] for j in cand], lo, step, H, T, N, dt, max_distance))
+            scene = _cut(fp, [pieces[j] for j in cand], lo, step, H, T, N, dt, max_distance)
+            if rows is not None:
+                scene["others"] = _others(rows, scene, fp, lo, step, H + T + 1, int(context))
+            out.append(scene)
+    return out
+
+
+def _rows(tracks: Sequence[Track]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every recorded row of ``tracks`` sorted by frame: ``(frames, ids, xy)``."""
+    ts = [t for t in tracks if t.frames.size]
+    if not ts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+    f = np.concatenate([np.asarray(t.frames, np.int64) for t in ts])
+    i = np.concatenate([np.full(t.frames.size, t.id, np.int64) for t in ts])
+    xy = np.concatenate([np.asarray(t.xy, np.float64) for t in ts])
+    o = np.argsort(f, kind="stable")
+    return f[o], i[o], xy[o]
+
+
+def _others(rows, scene: dict, fp: Track, lo: int, step: int, n: int, C: int) -> np.ndarray:
+    """``others`` ``(C, n, 2)`` of a scene (module docstring, "Context agents")."""
+    F, ids, XY = rows
+    out = np.full((C, n, 2), np.nan)
+    a, b = np.searchsorted(F, lo, "left"), np.searchsorted(F, lo + (n - 1) * step, "right")
+    f, i, xy = F[a:b], ids[a:b], XY[a:b]
+    k = (f - lo) // step
+    keep = ~np.isin(i, scene["track_id"][scene["agents_mask"]]) & ((f - lo) % step == 0)
+    f, i, xy, k = f[keep], i[keep], xy[keep], k[keep]
+    if not i.size:
+        return out
+    focal = fp.xy[_window(fp, lo, step, n)]  # (n, 2): the focal piece covers the window
+    d = np.linalg.norm(xy - focal[k], axis=-1)
+    uid, inv = np.unique(i, return_inverse=True)
+    best = np.full(uid.size, np.inf)
+    np.minimum.at(best, inv, d)
+    pick = np.lexsort((uid, best))[:C]
+    slot = np.full(uid.size, -1)
+    slot[pick] = np.arange(pick.size)
+    s = slot[inv]
+    sel = s >= 0
+    out[s[sel], k[sel]] = xy[sel] - scene["origin"]
     return out
 
 
@@ -272,11 +330,16 @@ def _cut(fp, cands, lo, step, H, T, N, dt, max_distance) -> dict:
     }
 
 
-def scene_schema(agents: int, history: int, horizon: int, modes: int) -> dict[str, FieldSpec]:
+def scene_schema(
+    agents: int, history: int, horizon: int, modes: int, sizes: bool = True, context: int = 0
+) -> dict[str, FieldSpec]:
     """The per-sample fields every recorded-data scenario writes (N agents, H + 1 observed
-    and T future steps, M future slots of which slot 0 is the recording)."""
+    and T future steps, M future slots of which slot 0 is the recording). ``sizes``: write
+    ``length`` and ``width`` (only for a reader that records a size for every agent; module
+    docstring, "Sizes"); ``context`` C > 0: the figure-only field ``others`` ``(C, H+1+T,
+    2)`` (module docstring, "Context agents")."""
     N, H1, T, M = int(agents), int(history) + 1, int(horizon), int(modes)
-    return {
+    out = {
         "history": FieldSpec(
             (H1, N, 4), "float32", "observed states (x, y, v, theta), scene frame"
         ),
@@ -298,6 +361,16 @@ def scene_schema(agents: int, history: int, horizon: int, modes: int) -> dict[st
             "closest distance of two recorded agents over the window (m; inf: one agent)",
         ),
     }
+    if not sizes:
+        del out["length"], out["width"]
+    if int(context) > 0:
+        out["others"] = FieldSpec(
+            (int(context), H1 + T, 2),
+            "float32",
+            "figures only: positions (scene frame; NaN: not recorded) over the window of the "
+            "recorded agents nearest the focal one that are not in the scene",
+        )
+    return out
 
 
 def stack_scenes(
@@ -309,7 +382,9 @@ def stack_scenes(
     """Samples ``(n, ...)`` of every schema field from :func:`window_scenes`' dicts.
 
     ``radius``: a collision radius per agent kind (indexed by ``kind``) or one for all;
-    padded slots get 0. ``extra``: per-unit constant fields (e.g. ``{"clip": 3}``)."""
+    padded slots get 0. ``extra``: per-unit constant fields (e.g. ``{"clip": 3}``). Only
+    the fields of ``schema`` are returned (``length`` / ``width`` / ``others`` when it has
+    them; ``others`` needs ``window_scenes(..., context=C)``)."""
     if not scenes:
         return {k: np.zeros((0, *fs.shape), fs.dtype) for k, fs in schema.items()}
     M = schema["future"].shape[0]
@@ -336,6 +411,8 @@ def stack_scenes(
         "origin": np.stack([s["origin"] for s in scenes]),
         "min_distance": np.array([s["min_distance"] for s in scenes]),
     }
+    if "others" in schema:
+        out["others"] = np.stack([s["others"] for s in scenes])
     for k, v in (extra or {}).items():
         out[k] = np.full(n, v)
     return {k: np.asarray(out[k]).astype(fs.dtype) for k, fs in schema.items()}

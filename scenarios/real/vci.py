@@ -55,7 +55,11 @@ Scenes (:func:`scenarios.real.scenes.window_scenes`, grid step 1)
     ``agent_kind`` tells which file (:data:`KINDS`); ``radius``: ``radius`` for pedestrians
     (0.3 m), ``vehicle_radius`` for vehicles (1.1 m, half the golf cart's 2.2 m length: 1 m
     front bumper to centre, 1.2 m centre to rear bumper, width 1.2 m, as the CITR README
-    measures it); ``length`` / ``width`` are the cart's (0 for pedestrians).
+    measures it). No ``length`` / ``width`` fields (the pedestrians have no recorded size,
+    so the overlap rate uses circles of ``radius``); the cart's size is ``meta.vehicle_size``.
+    The vehicle is slot 0 (``meta.focal_slot``). ``others`` (figures only,
+    ``context_agents`` of them): the nearest other agents of the clip over the window, NaN
+    where not recorded (:mod:`scenarios.real.scenes`, "Context agents").
 
 Splits (by clip)
     Per experiment type with a vehicle (sorted by name, one seeded generator for all): its
@@ -415,6 +419,8 @@ class VciRecipe(SceneRecipe):
     max_frame_gap: int = 1  #: rows further apart than this many frames end a run (a gap)
     val_fraction: float = 0.2  #: share of each experiment type's vehicle clips in val
     test_fraction: float = 0.2  #: ... and in test
+    #: figures only: the ``others`` field holds this many other agents of the clip (0: none)
+    context_agents: int = 16
 
     def __post_init__(self):
         super().__post_init__()
@@ -458,6 +464,7 @@ class VciRecipe(SceneRecipe):
         check_bool(f"{p}.vehicle_candidates", self.vehicle_candidates)
         for k in ("val_fraction", "test_fraction"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0, hi=0.5)
+        check_number(f"{p}.context_agents", self.context_agents, lo=0, hi=256, integer=True)
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -565,7 +572,11 @@ class VciScenario(Scenario):
 
     def schema(self) -> dict[str, FieldSpec]:
         r = self.recipe
-        s = scene_schema(r.agents, r.history, r.horizon, r.modes)
+        # no length / width: the pedestrians have no recorded size (circles of `radius`
+        # instead; the cart's size is in meta.vehicle_size)
+        s = scene_schema(
+            r.agents, r.history, r.horizon, r.modes, sizes=False, context=r.context_agents
+        )
         s["frame"] = FieldSpec((), "int64", "video frame nearest the current step (time * fps)")
         s["time"] = FieldSpec(
             (), "float64", "time of the current step in the clip: frame / fps (s)"
@@ -581,6 +592,8 @@ class VciScenario(Scenario):
             "kinds": list(KINDS),
             "agents": [f"a{i}" for i in range(r.agents)],
             "slots": "slot 0 the vehicle, then pedestrians by closest approach (observed part)",
+            "focal_slot": 0,
+            "vehicle_size": {"length": r.vehicle_length, "width": r.vehicle_width},
             "clips": [c[0] for c in r.clips],
             "clip_types": [c[1] for c in r.clips],
             "clip_has_vehicle": [c[2] for c in r.clips],
@@ -630,6 +643,7 @@ class VciScenario(Scenario):
         span = r.history + r.horizon
         n = sum(max(0, t.frames.size - span + r.stride - 1) // r.stride for t in tracks if t.kind)
         per = (span + 1) * r.agents * 4 * 8 + r.modes * r.horizon * r.agents * 4 * 4
+        per += r.context_agents * (span + 1) * 2 * 8
         check_size(
             f"{self.raw / r.clips[index][0]}{PED_SUFFIX}:frame",
             n * per,
@@ -649,6 +663,7 @@ class VciScenario(Scenario):
             max_distance=r.max_distance,
             focal_ids=veh,
             candidate_ids=cand,
+            context=r.context_agents,
         )
         step = r.dt * r.fps
         times = []

@@ -213,6 +213,7 @@ class WaymoScenario(Scenario):
             "kinds": list(OBJECT_TYPES),
             "types": list(r.types),
             "agents": [f"a{i}" for i in range(r.agents)],
+            "focal_slot": 0,
             "dt": r.dt,
             "step": r.step,
             "units": "metres, seconds, radians",
