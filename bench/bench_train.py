@@ -4,6 +4,7 @@ Not a test. Run from the repository root::
 
     .venv/bin/python bench/bench_train.py                       # generates ~600 samples first
     .venv/bin/python bench/bench_train.py --data /tmp/rpi-small  # an existing RPI set
+    .venv/bin/python bench/bench_train.py --nproc 1 2 --rows ours SC   # data-parallel scaling
 
 Each row trains one model from scratch for ``--epochs`` epochs (default 2) with the paper's
 settings (batch 32; ours: S = 2 LM steps, alpha = 0.3, lambda = 10; no validation pass),
@@ -17,6 +18,15 @@ pays for building and, once per game structure, compiling the layer's generated 
   0.1 to 0.5 s of CPU for every model, are left out); ``wall s / epoch`` the same in wall
   clock;
 * ``/ SC``: this row's CPU seconds per epoch over SC's (issue 14: ours <= 1.5).
+
+With ``--nproc 1 2`` (any counts) each row instead trains on that many local ranks
+(:func:`learning.distributed.train_parallel`: data-parallel, each rank a shard of every
+batch of ``--batch``) and the table gives the last epoch's ``samples/s`` (rank 0's wall
+clock of the epoch's batches, as ``metrics.csv`` records it), beside the single-process
+figure, and the scaling efficiency ``rate(N) / (N * rate(1))``; the process start (torch
+import, process group, the first epoch's compilation) is left out of the rate and shown
+as the call's total wall time. CPU time is not measured there (it is spread over the
+ranks' processes).
 
 Rows: ``ours`` (the default ``layer_backend=auto``, ``layer_compiled=auto``: the fused
 backend in generated C when a compiler is found), ``ours before`` (``layer_backend=
@@ -47,6 +57,7 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
+from learning.distributed import train_parallel  # noqa: E402
 from learning.models import ModelConfig, layer_execution  # noqa: E402
 from learning.train import TrainConfig, train  # noqa: E402
 
@@ -114,6 +125,65 @@ def time_row(data: str, model: dict, epochs: int, batch: int, threads: int) -> d
     }
 
 
+def time_parallel(data: str, model: dict, epochs: int, batch: int, threads: int, nproc: int):
+    """Train one model from scratch on ``nproc`` local ranks; the last epoch's samples/s."""
+    cfg = TrainConfig(
+        model=ModelConfig(lm_steps=2, step_size=0.3, damping=10.0, **model),
+        epochs=epochs,
+        batch_size=batch,
+        val_split=None,
+    )
+    with tempfile.TemporaryDirectory(prefix="epo_bench_train_") as out:
+        w0 = time.perf_counter()
+        res = train_parallel(nproc, data, out, cfg, progress=False, threads=threads)
+        w1 = time.perf_counter()
+    last = res.history[-1]
+    return {
+        "samples_per_s": float(last["samples_per_s"]),
+        "epoch_wall": float(last["seconds"]),
+        "total_wall": w1 - w0,
+        "steps": res.steps // epochs,
+        "loss": float(last["train_loss"]),
+    }
+
+
+def scaling(args, data: str) -> None:
+    """The ``--nproc`` table: samples/s per row and rank count, efficiency against 1."""
+    res: dict[tuple[str, int], list[dict]] = {}
+    for rnd in range(args.rounds):
+        for r in args.rows:
+            for n in args.nproc:
+                out = time_parallel(data, ROWS[r], args.epochs, args.batch, args.threads, n)
+                res.setdefault((r, n), []).append(out)
+                print(
+                    f"  round {rnd + 1} {r:12s} nproc {n}: {out['samples_per_s']:8.1f} samples/s "
+                    f"(epoch {out['epoch_wall']:.2f} s, call {out['total_wall']:.1f} s, "
+                    f"loss {out['loss']:.4f})",
+                    flush=True,
+                )
+    med = {
+        k: {q: float(np.median([o[q] for o in v])) for q in ("samples_per_s", "total_wall")}
+        for k, v in res.items()
+    }
+    print(
+        f"\nlast epoch ({res[(args.rows[0], args.nproc[0])][0]['steps']} steps of "
+        f"{args.batch}), median of {args.rounds} round(s), {os.cpu_count()} CPUs, "
+        f"load average {os.getloadavg()[0]:.1f}\n"
+    )
+    print("| model | ranks | samples/s (wall) | vs 1 rank | efficiency | call wall s |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for r in args.rows:
+        one = med.get((r, 1), {}).get("samples_per_s")
+        for n in args.nproc:
+            m = med[(r, n)]
+            speed = f"{m['samples_per_s'] / one:.2f}x" if one else "-"
+            eff = f"{m['samples_per_s'] / (n * one):.0%}" if one else "-"
+            print(
+                f"| {r} | {n} | {m['samples_per_s']:.1f} | {speed} | {eff} | "
+                f"{m['total_wall']:.1f} |"
+            )
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", help="an RPI dataset folder (default: generate one)")
@@ -125,7 +195,16 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--rounds", type=int, default=3, help="repeat all rows this many times")
     ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS), help="rows to run")
+    ap.add_argument(
+        "--nproc",
+        nargs="+",
+        type=int,
+        default=None,
+        help="rank counts: the data-parallel scaling table instead (e.g. --nproc 1 2)",
+    )
     args = ap.parse_args(argv)
+    if args.nproc is not None and min(args.nproc) < 1:
+        ap.error("--nproc: every count must be >= 1")
     if args.epochs < 2:
         ap.error("--epochs must be >= 2 (the first epoch is not timed)")
     tmp = None
@@ -135,6 +214,14 @@ def main(argv=None) -> int:
         data = os.path.join(tmp, "rpi")
         generate(data, args.samples, args.seed)
     try:
+        if args.nproc is not None:
+            print(
+                f"data {data}; epochs {args.epochs} (last timed), global batch {args.batch}, "
+                f"torch threads {args.threads} per rank, ranks {args.nproc}; "
+                f"load average {os.getloadavg()[0]:.1f}"
+            )
+            scaling(args, data)
+            return 0
         backend, compiled = layer_execution(ModelConfig())
         print(
             f"data {data}; epochs {args.epochs} (last timed), batch {args.batch}, "

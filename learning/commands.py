@@ -121,6 +121,21 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     "loss weights 1/1/1, M = 6, regressed goals; options given here override them.",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
+@click.option(
+    "--nproc",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Data-parallel ranks on this machine (each a process; under torchrun: 1, "
+    "torchrun starts the ranks).",
+)
+@click.option(
+    "--tensorboard/--no-tensorboard",
+    default=True,
+    show_default=True,
+    help="Write TensorBoard events to OUT/tb (losses, learning rate, layer statuses, a "
+    "predictions figure per epoch).",
+)
 def train_cmd(
     kind,
     data,
@@ -136,14 +151,18 @@ def train_cmd(
     threads,
     progress,
     preset,
+    nproc,
+    tensorboard,
 ):
     """Train a model on the train split of a dataset; validate on val after every epoch.
 
     One training at a time per --out folder (a second is refused while the first runs);
-    --out must not be a dataset folder.
+    --out must not be a dataset folder. --nproc N trains on N local processes
+    (data-parallel: each takes a shard of every batch); under torchrun every rank runs
+    this command with the same options.
     """
     from .presets import get_preset
-    from .train import TrainConfig, check_run_dir, train
+    from .train import TrainConfig, check_run_dir
 
     p = None if preset is None else get_preset(preset)
     check_run_dir(out, data, field="--out")
@@ -176,16 +195,28 @@ def train_cmd(
         loss=loss,
         checkpoint_steps=checkpoint_steps,
     )
+    import os
+
     from scenarios.dataset import sigterm_as_interrupt
 
+    from .distributed import train_parallel
+
+    ranks = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if nproc > 1 and ranks > 1:
+        raise SpecError(
+            "--nproc", f"expected 1 inside a process group of {ranks} ranks (torchrun), got {nproc}"
+        )
     with sigterm_as_interrupt():  # kill PID stops like Ctrl-C; the last checkpoint is kept
-        res = train(data, out, cfg, progress=progress, threads=threads)
-    if res.history:
+        res = train_parallel(
+            nproc, data, out, cfg, progress=progress, threads=threads, tensorboard=tensorboard
+        )
+    if res.history and int(os.environ.get("RANK", "0") or 0) == 0:
         last = res.history[-1]
+        files = "checkpoint.pt best.pt metrics.csv loss.png" + (" tb/" if tensorboard else "")
         click.echo(
             f"{out}: epoch {res.epochs}, step {res.steps}, train loss {last['train_loss']:.4g}, "
             f"val minADE {last['val_minADE']:.3f} minSADE {last['val_minSADE']:.3f} OR {last['val_OR']:.3f}, "
-            f"{last['samples_per_s']:.1f} samples/s; files: checkpoint.pt best.pt metrics.csv loss.png"
+            f"{last['samples_per_s']:.1f} samples/s; files: {files}"
         )
 
 
@@ -216,14 +247,30 @@ def train_cmd(
 @click.option(
     "--threads", type=click.IntRange(min=1), default=1, show_default=True, help="torch threads."
 )
+@click.option(
+    "--subset",
+    "subsets",
+    multiple=True,
+    metavar="EXPR",
+    help="Also score the samples whose per-sample number FIELD compares so, e.g. "
+    "'min_distance<1' (OP one of < <= > >= == !=), or a name: interacting (= "
+    "'min_distance<1': the recorded agents come within 1 m of each other); a table beside "
+    "the whole split's (repeatable).",
+)
 @click.option("--progress/--no-progress", default=False, show_default=True)
-def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threads, progress):
+def evaluate_cmd(
+    runs, data, split, baseline, out, checkpoint, batch_size, threads, subsets, progress
+):
     """Score run directories (mean ± std over runs of one model) and baselines on a split.
 
     Each RUN counts once: a run folder given twice (also through another path) is
-    refused. --out must not be the dataset folder.
+    refused. --out must not be the dataset folder. A dataset whose manifest names a focal
+    agent (meta.focal_slot: the readers of recorded data) also gets ADE_focal / FDE_focal
+    (best of the M modes) and ADE_focal_top1 / FDE_focal_top1 (the most likely mode).
     """
-    from .evaluate import evaluate
+    from .evaluate import evaluate, parse_subset
+
+    parsed = [parse_subset(s) for s in subsets]  # a malformed one before any work
 
     if baseline is not None and baseline != "cv":
         raise SpecError(
@@ -243,6 +290,7 @@ def evaluate_cmd(runs, data, split, baseline, out, checkpoint, batch_size, threa
         checkpoint=checkpoint,
         progress=progress,
         threads=threads,
+        subsets=parsed,
     )
     click.echo(report.markdown(), nl=False)
     if out is not None:
@@ -321,13 +369,24 @@ def _sample_figure_options(default_out: str):
 
 @click.command("show-predictions")
 @_sample_figure_options("predictions.png")
-def show_cmd(run, data, split, index, out, checkpoint):
-    """Draw one sample with a run's predicted modes, probabilities and (ours) weights; RUN may be cv."""
+@click.option(
+    "--frame",
+    type=click.Choice(["world", "scene"]),
+    default="world",
+    show_default=True,
+    help="Recorded data (a dataset with `origin`): world, the recording's frame (the origin "
+    "added back); scene, the sample's frame. Other datasets have one frame.",
+)
+def show_cmd(run, data, split, index, out, checkpoint, frame):
+    """Draw one sample with a run's predicted modes, probabilities and (ours) weights; RUN may be cv.
+
+    Recorded data: the real scene, i.e. the other recorded agents near the focal one (grey;
+    ETH/UCY, CITR) or the lane map (Waymo), history solid, truth dashed, the modes coloured
+    by their probability."""
     from .show import show_predictions
 
-    click.echo(
-        f"wrote {show_predictions(run, data, index, out, split=split, checkpoint=checkpoint)}"
-    )
+    png = show_predictions(run, data, index, out, split=split, checkpoint=checkpoint, frame=frame)
+    click.echo(f"wrote {png}")
 
 
 @click.command("show-weights")

@@ -2,8 +2,8 @@
 
 ``metrics.csv`` (:func:`write_csv`: one row per epoch, atomically written), ``loss.png``
 (:func:`plot_history`: training loss parts and validation minADE/minSADE per epoch) and
-``tb/`` (:func:`tensorboard_writer`: TensorBoard events, only when ``tensorboard`` is
-installed).
+``tb/`` (:func:`tensorboard_writer`: TensorBoard events; the ``tensorboard`` package,
+imported on first use; :func:`predictions_image`: the predictions figure of an epoch).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from scenarios.files import write_atomic
 
-__all__ = ["plot_history", "tensorboard_writer", "write_csv"]
+__all__ = ["plot_history", "predictions_image", "tensorboard_writer", "write_csv"]
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
@@ -69,8 +69,30 @@ def plot_history(rows: list[dict], out_png: str | os.PathLike, title: str = "") 
     write_atomic(out_png, lambda f: fig.savefig(f, format="png", dpi=100))
 
 
+def predictions_image(run_dir: Path, data_dir: Path, split: str, index: int = 0):
+    """The predictions figure of sample ``index`` of ``split`` for the run's latest
+    checkpoint, as ``epo show-predictions RUN --checkpoint last`` draws it
+    (:func:`learning.show.show_predictions`): an ``(H, W, 3)`` uint8 array."""
+    import tempfile
+
+    import numpy as np
+    from matplotlib.image import imread
+
+    from .show import show_predictions
+
+    with tempfile.TemporaryDirectory(prefix="epo-tb-") as tmp:
+        png = show_predictions(
+            run_dir, data_dir, index, Path(tmp) / "predictions.png", split=split,
+            checkpoint="last",
+        )  # fmt: skip
+        rgba = imread(png)
+    rgb = rgba[..., :3]
+    return (rgb * 255).round().astype(np.uint8) if rgb.dtype.kind == "f" else rgb
+
+
 def tensorboard_writer(log_dir: Path, purge_step: int):
-    """A SummaryWriter when tensorboard is installed, else None."""
+    """A SummaryWriter (events after ``purge_step`` dropped: a resumed run's) when
+    tensorboard is installed, else None."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -14,9 +14,17 @@ A run directory (``out_dir``)::
     config.json      TrainConfig, dataset identity (scenario, recipe, seed), game summary
     checkpoint.pt    the latest state: model, optimizer, torch RNG, epoch, step, history
     best.pt          model weights of the epoch with the lowest validation minSADE
-    metrics.csv      one row per epoch: train loss parts, samples/s, validation metrics
+    metrics.csv      one row per epoch: train loss parts, samples/s, learning rate, the
+                     game layer's status counts (``layer_<status>``: ours, + TGL),
+                     validation metrics
     loss.png         training loss and validation minADE/minSADE per epoch
-    tb/              TensorBoard events (only when ``tensorboard`` is installed)
+    tb/              TensorBoard events, with ``tensorboard=True`` (``epo train``: unless
+                     ``--no-tensorboard``): per step ``train/loss``, ``train/imitation``,
+                     ``train/probability``, ``train/goal``, ``train/lr`` and
+                     ``layer/<status>`` (problems of the step per status); per epoch
+                     ``epoch/<column>`` of metrics.csv and the image ``predictions`` (the
+                     figure of ``epo show-predictions RUN --checkpoint last`` for sample 0
+                     of the validation split)
     .lock            held (flock) while a training runs: a second ``train`` into the
                      same folder is refused at once (:func:`scenarios.files.output_lock`)
 
@@ -49,6 +57,15 @@ Checkpoints and resume
     stop the run with one line naming the epoch and step (and suggesting a lower
     learning rate); the last checkpoint is kept.
 
+Several processes
+    In a process group (``torchrun``, ``epo train --nproc N``,
+    :func:`learning.distributed.train_parallel`) every rank runs :func:`train`: each takes
+    a shard of every batch, gradients and batch-norm statistics span the global batch,
+    ``metrics.csv`` holds the global batch's numbers, rank 0 writes the files, and the
+    checkpoint does not depend on the number of ranks (details: :mod:`learning.distributed`).
+    ``batch_size`` must be at least the number of ranks; on ``W`` ranks a last, partial
+    batch of fewer than ``W`` samples is skipped.
+
 BatchNorm in the scene-probability decoder needs two values per channel: a training batch
 of one sample with ``modes = 1`` is skipped (only possible for a last, partial batch).
 """
@@ -60,10 +77,12 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -83,10 +102,19 @@ from .checkpoint import (
     setting_diff,
 )
 from .data import SceneDataset, game_summary
+from .distributed import (
+    World,
+    agree,
+    all_sum,
+    convert_sync_batchnorm,
+    gather_objects,
+    joined,
+    shard,
+)
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
 from .models import ModelConfig, build_model, count_parameters
-from .records import plot_history, tensorboard_writer, write_csv
-from .scoring import METRICS, evaluate_model
+from .records import plot_history, predictions_image, tensorboard_writer, write_csv
+from .scoring import METRICS, evaluate_model, mean_metrics, score_samples
 
 __all__ = [
     "PAPER_LOSS_WEIGHTS",
@@ -337,19 +365,34 @@ def train(
     progress: bool = True,
     on_step: Callable[[int, dict], None] | None = None,
     threads: int | None = 1,
+    tensorboard: bool = False,
 ) -> TrainResult:
     """Train ``config.model`` on the train split of ``data_dir``; resume ``out_dir`` if it has a checkpoint.
 
     ``on_step(step, parts)`` runs after every optimizer step (and its checkpoint, if
     one is due) with the loss parts as floats; tests raise from it to simulate a kill.
     ``threads``: torch threads during the call (:func:`torch_threads`; None: unchanged).
+    ``tensorboard``: also write TensorBoard events to ``out_dir/tb`` (module docstring).
+    In a process group of several ranks (``torchrun``,
+    :func:`~learning.distributed.train_parallel`) every rank calls this with the same
+    arguments: data-parallel training, rank 0 writing the files
+    (:mod:`learning.distributed`).
     Returns a :class:`TrainResult`; see the module docstring for the files written.
     """
     if not isinstance(config, TrainConfig):
         raise SpecError("config", f"expected a TrainConfig, got {type(config).__name__}")
-    out = check_run_dir(out_dir, data_dir)
-    with torch_threads(threads), output_lock(out, "epo train"):
-        return _train(data_dir, out, config, progress, on_step)
+    with joined() as world, torch_threads(threads), contextlib.ExitStack() as stack:
+        run = error = None
+        try:
+            out = check_run_dir(out_dir, data_dir)
+            if world.main:  # one lock per run: rank 0 holds it for all ranks
+                stack.enter_context(output_lock(out, "epo train"))
+            run, pr, resumed_from = _start(data_dir, out, config, world)
+            stack.callback(run.close)
+        except Exception as e:  # every rank learns of it (agree), none waits for the others
+            error = e
+        agree(world, {} if run is None else run.facts(pr), error)
+        return _train(run, pr, resumed_from, progress, on_step, tensorboard)
 
 
 def check_run_dir(
@@ -459,6 +502,9 @@ class _Run:
     opt: torch.optim.Optimizer
     summary: dict  #: the game summary (checkpoint ``game``)
     fingerprint: dict  #: the dataset identity (checkpoint ``data``)
+    data_dir: Path = Path(".")  #: the dataset folder
+    world: World = World()  #: this process's rank and the number of ranks
+    net: nn.Module | None = None  #: what a training step calls: ``model`` or its DDP wrapper
 
     @property
     def ck_path(self) -> Path:
@@ -485,6 +531,21 @@ class _Run:
             "history": pr.history,
             "best": pr.best,
         }
+
+    def facts(self, pr: _Progress) -> dict:
+        """What every rank must agree on (:func:`learning.distributed.agree`)."""
+        sizes = {"train": len(self.train_ds)}
+        sizes["val"] = None if self.val_ds is None else len(self.val_ds)
+        return {
+            "config": self.cfg.to_dict(),
+            "data": {**self.fingerprint, "samples": sizes, "game": self.summary},
+            "resume": {"epoch": pr.epoch, "step": pr.step, "step_in_epoch": pr.start_batch},
+        }
+
+    def close(self) -> None:
+        self.train_ds.close()
+        if self.val_ds is not None:
+            self.val_ds.close()
 
 
 def _restore(run: _Run, state: dict) -> _Progress:
@@ -527,30 +588,113 @@ def _write_run_info(run: _Run, data_dir) -> None:
     write_atomic(run.out / "config.json", json.dumps(info, indent=1) + "\n")
 
 
-def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float) -> dict | None:
-    """One optimizer step on ``batch``; its loss parts as floats (None: batch skipped)."""
-    cfg, model = run.cfg, run.model
+def _status_names(kind: str) -> tuple[str, ...]:
+    """Names of a model's per-problem solver statuses (``out["status"]`` codes), or ()."""
+    if kind == "epo":
+        from .layer import STATUS_CODES
+
+        return tuple(s.value for s in STATUS_CODES)
+    if kind == "tgl":
+        return ("solved", "osqp_only", "failed")  # learning.tgl.QPStatus 0, 1, 2
+    return ()
+
+
+_PARTS = ("imitation", "probability", "goal")
+
+
+def _status_counts(run: _Run, res: dict) -> torch.Tensor:
+    """Problems of the step per status (float64 ``(len(names),)``; empty without a layer)."""
+    names = _status_names(run.cfg.model.kind)
+    st = res.get("status")
+    if not names or st is None:
+        return torch.zeros(len(names), dtype=torch.float64)
+    c = torch.bincount(st.detach().reshape(-1).long().cpu(), minlength=len(names))
+    return c[: len(names)].double()
+
+
+def _global_loss(run: _Run, parts: dict, res: dict, batch: dict, n_global: int):
+    """``(objective, values, statuses)`` of this rank's shard of a global batch.
+
+    Each loss part is a mean over the shard's samples or (the marginal loss, the goal
+    classification) over its real agents; ``objective`` weights this rank's parts by the
+    shard's share of the global count, times the number of ranks, so the gradient
+    DistributedDataParallel averages over the ranks is that of the global batch's loss.
+    ``values``: the global batch's loss parts (floats); ``statuses``: layer status counts
+    over all ranks."""
+    w, kind, size = run.cfg.loss_weights, run.cfg.model.kind, run.world.size
     n = int(batch["history"].shape[0])
-    if n * cfg.model.modes < 2:  # BatchNorm needs two values per channel
-        return None
-    with _diverged(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the model's output"):
-        res = model(batch)
-    parts = compute_loss(
-        cfg.model.kind, res, batch["gt"], cfg.loss_weights, batch.get("agents_mask")
+    mask = batch.get("agents_mask")
+    agents = float(mask.sum()) if mask is not None else float(n * batch["history"].shape[2])
+    by = {
+        "imitation": "agents" if kind == "vlstm" else "samples",
+        "probability": "agents" if kind == "vlstm" else "samples",
+        "goal": "agents" if "goal_logits" in res else "samples",
+    }
+    mine = {"samples": float(n), "agents": agents}
+    status = _status_counts(run, res)
+    local = torch.tensor(
+        [mine["samples"], mine["agents"]]
+        + [float(parts[k].detach()) * mine[by[k]] for k in _PARTS],
+        dtype=torch.float64,
     )
-    loss = parts["loss"]
-    if not torch.isfinite(loss):
-        raise _diverged_error(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the loss")
-    run.opt.zero_grad(set_to_none=True)
-    loss.backward()
+    tot = all_sum(torch.cat([local, status]))
+    count = {"samples": float(tot[0]), "agents": float(tot[1])}
+    coef = {
+        "imitation": w.imitation,
+        "probability": w.probability,
+        "goal": w.goal if res.get("decoded_goals", False) else 0.0,
+    }
+    objective = sum(
+        coef[k] * parts[k] * (size * mine[by[k]] / max(count[by[k]], 1.0)) for k in _PARTS
+    )
+    vals = {k: float(tot[2 + i]) / max(count[by[k]], 1.0) for i, k in enumerate(_PARTS)}
+    vals = {"loss": sum(coef[k] * vals[k] for k in _PARTS), **vals}
+    return objective, vals, tot[2 + len(_PARTS) :]
+
+
+@contextlib.contextmanager
+def _ddp_quiet():
+    """Without DDP's note that a model used every parameter of a batch (it looks for
+    unused ones, e.g. the lane encoder on data without lanes): not for the user."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "find_unused_parameters=True was specified")
+        yield
+
+
+def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float, n_global: int) -> dict | None:
+    """One optimizer step on ``batch`` (this rank's shard of a global batch of ``n_global``
+    samples); the global batch's loss parts as floats (None: batch skipped)."""
+    cfg, model = run.cfg, run.model
+    if n_global * cfg.model.modes < 2:  # BatchNorm needs two values per channel
+        return None
+    with _ddp_quiet() if run.world.size > 1 else contextlib.nullcontext():
+        with _diverged(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the model's output"):
+            res = run.net(batch)
+        parts = compute_loss(
+            cfg.model.kind, res, batch["gt"], cfg.loss_weights, batch.get("agents_mask")
+        )
+        if run.world.size == 1:
+            loss, vals, status = parts["loss"], None, _status_counts(run, res)
+            finite = bool(torch.isfinite(loss))
+        else:
+            loss, vals, status = _global_loss(run, parts, res, batch, n_global)
+            finite = math.isfinite(vals["loss"])  # the same on every rank
+        if not finite:
+            raise _diverged_error(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the loss")
+        run.opt.zero_grad(set_to_none=True)
+        loss.backward()
     run.opt.step()
     pr.step += 1
     if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
         raise _diverged_error(pr.epoch, pr.step, cfg.lr, run.ck_path, "the weights")
-    vals = {k: v.item() for k, v in parts.items()}
+    if vals is None:
+        vals = {k: v.item() for k, v in parts.items()}
     for k in ("loss", "imitation", "probability", "goal"):
-        pr.sums[k] = pr.sums.get(k, 0.0) + vals[k] * n
-    pr.sums["samples"] += n
+        pr.sums[k] = pr.sums.get(k, 0.0) + vals[k] * n_global
+    for name, c in zip(_status_names(cfg.model.kind), status.tolist(), strict=True):
+        pr.sums[f"layer_{name}"] = pr.sums.get(f"layer_{name}", 0) + int(c)
+        vals[f"layer_{name}"] = int(c)
+    pr.sums["samples"] += n_global
     pr.sums["seconds"] = time.perf_counter() - t0
     pr.step_losses.append((pr.step, vals["loss"]))
     return vals
@@ -558,13 +702,14 @@ def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float) -> dict | None
 
 def _train_epoch(run: _Run, pr: _Progress, writer, progress: bool, on_step) -> float:
     """The batches of epoch ``pr.epoch`` from ``pr.start_batch`` on (order: the permutation
-    of ``(seed, epoch)``); returns the epoch's start time (less the seconds spent in it
-    before a resume)."""
-    cfg = run.cfg
+    of ``(seed, epoch)``; on several ranks each takes its :func:`~learning.distributed.shard`
+    of every batch); returns the epoch's start time (less the seconds spent in it before a
+    resume)."""
+    cfg, world = run.cfg, run.world
     nb = run.train_ds.num_batches(cfg.batch_size)
     bar = None
     try:
-        if progress:
+        if progress and world.main:
             from tqdm import tqdm
 
             bar = tqdm(
@@ -577,28 +722,65 @@ def _train_epoch(run: _Run, pr: _Progress, writer, progress: bool, on_step) -> f
             )
         run.model.train()
         t0 = time.perf_counter() - pr.sums["seconds"]
-        batches = run.train_ds.batches(
-            cfg.batch_size, shuffle=True, seed=cfg.seed, epoch=pr.epoch, start=pr.start_batch
-        )
-        for b, batch in enumerate(batches, start=pr.start_batch):
-            vals = _train_step(run, pr, batch, t0)
+        order = run.train_ds.order(shuffle=True, seed=cfg.seed, epoch=pr.epoch)
+        B = cfg.batch_size
+        for b in range(pr.start_batch, nb):
+            idx = order[b * B : (b + 1) * B]
+            if len(idx) < world.size:  # a last batch with fewer samples than ranks
+                continue
+            part = shard(idx, world.rank, world.size) if world.size > 1 else idx
+            vals = _train_step(run, pr, run.train_ds.batch(part), t0, len(idx))
             if vals is None:
                 continue
             if writer is not None:
                 for k, v in vals.items():
-                    writer.add_scalar(f"train/{k}", v, pr.step)
+                    tag = f"layer/{k[6:]}" if k.startswith("layer_") else f"train/{k}"
+                    writer.add_scalar(tag, v, pr.step)
+                writer.add_scalar("train/lr", run.opt.param_groups[0]["lr"], pr.step)
             if bar is not None:
                 bar.update(1)
                 rate = pr.sums["samples"] / max(pr.sums["seconds"], 1e-9)
                 bar.set_postfix(loss=f"{vals['loss']:.4g}", rate=f"{rate:.1f} samples/s")
             if cfg.checkpoint_steps and pr.step % cfg.checkpoint_steps == 0 and b + 1 < nb:
-                save_checkpoint(run.snapshot(pr, pr.epoch, pr.step, b + 1), run.ck_path)
+                if world.main:
+                    save_checkpoint(run.snapshot(pr, pr.epoch, pr.step, b + 1), run.ck_path)
             if on_step is not None:
                 on_step(pr.step, vals)
     finally:
         if bar is not None:
             bar.close()
     return t0
+
+
+def _validate(run: _Run) -> dict:
+    """Validation metrics of the model now: :func:`~learning.scoring.evaluate_model`; on
+    several ranks each scores its shard of the split and the per-sample values of all
+    ranks are averaged as one process does (:func:`~learning.scoring.mean_metrics`)."""
+    world, ds = run.world, run.val_ds
+    if world.size == 1:
+        return evaluate_model(run.model, ds, batch_size=run.cfg.eval_batch_size)
+    idx = shard(np.arange(len(ds), dtype=np.int64), world.rank, world.size)
+    per = score_samples(run.model, _Shard(ds, idx), batch_size=run.cfg.eval_batch_size)
+    gathered = [p for p in gather_objects(per if len(idx) else None) if p is not None]
+    keys = list(dict.fromkeys(k for p in gathered for k in p))
+    return mean_metrics({k: np.concatenate([p[k] for p in gathered if k in p]) for k in keys})
+
+
+class _Shard:
+    """The samples ``indices`` of a split, read like the split (what scoring reads)."""
+
+    def __init__(self, ds: SceneDataset, indices: np.ndarray):
+        self._ds, self._idx = ds, indices
+
+    def __getattr__(self, name):
+        return getattr(self._ds, name)
+
+    def __len__(self) -> int:
+        return len(self._idx)
+
+    def batches(self, batch_size: int, **_):
+        for i in range(0, len(self._idx), batch_size):
+            yield self._ds.batch(self._idx[i : i + batch_size])
 
 
 def _epoch_row(run: _Run, pr: _Progress, t0: float) -> dict:
@@ -615,11 +797,14 @@ def _epoch_row(run: _Run, pr: _Progress, t0: float) -> dict:
         "train_imitation": sums["imitation"] / ns,
         "train_probability": sums["probability"] / ns,
         "train_goal": sums.get("goal", 0.0) / ns,
+        "lr": run.opt.param_groups[0]["lr"],
     }
+    for name in _status_names(run.cfg.model.kind):
+        row[f"layer_{name}"] = int(sums.get(f"layer_{name}", 0))
     if run.val_ds is not None:
         t1 = time.perf_counter()
         with _diverged(pr.epoch, pr.step, run.cfg.lr, run.ck_path, "the validation output"):
-            vm = evaluate_model(run.model, run.val_ds, batch_size=run.cfg.eval_batch_size)
+            vm = _validate(run)
         row.update({f"val_{k}": vm[k] for k in METRICS})
         row["val_seconds"] = round(time.perf_counter() - t1, 3)
     else:
@@ -629,7 +814,8 @@ def _epoch_row(run: _Run, pr: _Progress, t0: float) -> dict:
 
 def _commit_epoch(run: _Run, pr: _Progress, row: dict, writer) -> None:
     """Record the epoch: ``best.pt`` if it improved, metrics.csv, loss.png, then the
-    checkpoint (last: it commits the epoch), then TensorBoard."""
+    checkpoint (last: it commits the epoch), then TensorBoard (rank 0 writes; every rank
+    keeps the same progress)."""
     pr.history.append(row)
     pr.epoch += 1
     pr.start_batch = 0
@@ -638,6 +824,8 @@ def _commit_epoch(run: _Run, pr: _Progress, row: dict, writer) -> None:
     improved = run.val_ds is None or score < pr.best
     if improved and run.val_ds is not None:
         pr.best = score
+    if not run.world.main:
+        return
     snap = run.snapshot(pr, pr.epoch, pr.step, 0)
     if improved:
         keep = ("format", "config", "game", "data", "model", "epoch", "step")
@@ -650,30 +838,71 @@ def _commit_epoch(run: _Run, pr: _Progress, row: dict, writer) -> None:
     save_checkpoint(snap, run.ck_path)
     if writer is not None:
         for k, v in row.items():
-            if k.startswith(("val_", "train_")) and math.isfinite(v):
-                writer.add_scalar(f"epoch/{k}", v, pr.step)
+            if k.startswith(("val_", "train_", "layer_")) or k in ("lr", "samples_per_s"):
+                if math.isfinite(v):
+                    writer.add_scalar(f"epoch/{k}", v, pr.step)
+        split = run.cfg.val_split if run.val_ds is not None else "train"
+        image = predictions_image(run.out, run.data_dir, split)
+        if image is not None:
+            writer.add_image("predictions", image, pr.step, dataformats="HWC")
         writer.flush()
 
 
-def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> TrainResult:
-    """The steps of :func:`train` in a created, locked ``out_dir``: open the splits, check a
-    checkpoint to resume, seed and build the model and optimizer, restore, write
-    ``config.json``, then per epoch train, validate and commit."""
-    t_call = time.perf_counter()
-    cfg = config
+def _start(data_dir, out: Path, cfg: TrainConfig, world: World):
+    """Open the splits, check a checkpoint to resume, seed and build the model (batch norm
+    over all ranks on several) and optimizer, restore: ``(run, progress, resumed_from)``."""
+    if world.size > cfg.batch_size:
+        raise SpecError(
+            "train.batch_size",
+            f"expected at least one sample per rank ({world.size} ranks), got {cfg.batch_size}",
+        )
     train_ds, val_ds = _open_splits(data_dir, cfg)
-    game = train_ds.game
-    out = Path(out_dir)  # created and locked by train()
-    summary, fingerprint = game_summary(game), train_ds.fingerprint
-    state = _resume_checkpoint(out, data_dir, cfg, fingerprint, game)
-    torch.manual_seed(cfg.seed)
-    model = build_model(cfg.model, game)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    run = _Run(cfg, out, train_ds, val_ds, model, opt, summary, fingerprint)
-    pr = _Progress() if state is None else _restore(run, state)
-    resumed_from = pr.step if state is not None else None
-    _write_run_info(run, data_dir)
-    writer = tensorboard_writer(out / "tb", pr.step) if pr.epoch < cfg.epochs else None
+    try:
+        game = train_ds.game
+        summary, fingerprint = game_summary(game), train_ds.fingerprint
+        state = _resume_checkpoint(out, data_dir, cfg, fingerprint, game)
+        torch.manual_seed(cfg.seed)
+        model = build_model(cfg.model, game)
+        if world.size > 1:
+            model = convert_sync_batchnorm(model)
+        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+        run = _Run(
+            cfg, out, train_ds, val_ds, model, opt, summary, fingerprint, Path(data_dir), world
+        )
+        pr = _Progress() if state is None else _restore(run, state)
+    except BaseException:
+        train_ds.close()
+        if val_ds is not None:
+            val_ds.close()
+        raise
+    return run, pr, (pr.step if state is not None else None)
+
+
+def _train(run: _Run, pr: _Progress, resumed_from, progress: bool, on_step, tb: bool):
+    """The epochs of :func:`train` after a start every rank agreed on: wrap the model for
+    several ranks, write ``config.json``, then per epoch train, validate and commit."""
+    t_call = time.perf_counter()
+    cfg, world = run.cfg, run.world
+    run.net = run.model
+    if world.size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        # parameters a model leaves unused (e.g. the lane encoder without lanes) get no
+        # gradient on any rank; batch norm statistics are synchronized, not broadcast
+        run.net = DistributedDataParallel(
+            run.model, find_unused_parameters=True, forward_sync_buffers=False
+        )
+    writer = None
+    if world.main:
+        _write_run_info(run, run.data_dir)
+        if tb and pr.epoch < cfg.epochs:
+            writer = tensorboard_writer(run.out / "tb", pr.step)
+            if writer is None:
+                warnings.warn(
+                    "tensorboard is not installed: no TensorBoard events are written "
+                    "(pip install tensorboard, or train with --no-tensorboard)",
+                    stacklevel=3,
+                )
     try:
         while pr.epoch < cfg.epochs:
             t0 = _train_epoch(run, pr, writer, progress, on_step)
@@ -681,11 +910,8 @@ def _train(data_dir, out_dir, config: TrainConfig, progress: bool, on_step) -> T
     finally:
         if writer is not None:
             writer.close()
-        train_ds.close()
-        if val_ds is not None:
-            val_ds.close()
     return TrainResult(
-        str(out),
+        str(run.out),
         pr.epoch,
         pr.step,
         pr.history,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
@@ -110,6 +111,7 @@ def test_run_files_and_reload(tmp_path):
     for f in ("config.json", "checkpoint.pt", "best.pt", "metrics.csv", "loss.png"):
         assert (run / f).is_file(), f
     assert not list(run.glob(".*.tmp"))
+    assert not (run / "tb").exists()  # TensorBoard events only when asked for (train())
     assert (run / "loss.png").read_bytes()[:8] == PNG
     info = json.loads((run / "config.json").read_text())
     assert info["train"]["model"]["kind"] == "epo" and info["train"]["loss"] == {
@@ -234,3 +236,48 @@ def test_layer_backends_train_alike_and_resume_across(tmp_path):
         ModelConfig(layer_backend="gpu")
     with pytest.raises(SpecError, match="model.layer_compiled"):
         ModelConfig(layer_compiled=True)
+
+
+def test_tensorboard_events_hold_what_the_run_recorded(tmp_path):
+    """``tensorboard=True``: event files in RUN/tb with the loss parts and learning rate
+    per step, the game layer's status counts per step, the epoch rows of metrics.csv and a
+    predictions figure per epoch; read back with TensorBoard's own reader, the numbers are
+    the run's."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from learning.layer import STATUS_CODES
+
+    data, run = synthetic_dataset(), tmp_path / "run"
+    cfg = _cfg(model=ModelConfig(kind="epo", **TINY), epochs=2)
+    res = train(data, run, cfg, progress=False, tensorboard=True)
+    acc = EventAccumulator(str(run / "tb"), size_guidance={"images": 0, "scalars": 0})
+    acc.Reload()
+    scalars = set(acc.Tags()["scalars"])
+    statuses = {f"layer/{s.value}" for s in STATUS_CODES}
+    parts = {"train/loss", "train/imitation", "train/probability", "train/goal", "train/lr"}
+    epoch = {f"epoch/{k}" for k in ("train_loss", "val_minADE", "val_minSADE", "val_OR", "lr")}
+    assert parts | statuses | epoch | {"epoch/layer_max_iter"} <= scalars, scalars
+    loss = [(e.step, e.value) for e in acc.Scalars("train/loss")]
+    assert [s for s, _ in loss] == [s for s, _ in res.step_losses] == [1, 2, 3, 4, 5, 6]
+    for (_, got), (_, want) in zip(loss, res.step_losses, strict=True):
+        assert math.isclose(got, want, rel_tol=1e-6)  # stored as float32
+    lr = acc.Scalars("train/lr")
+    assert len(lr) == 6 and all(math.isclose(e.value, cfg.lr, rel_tol=1e-6) for e in lr)
+    rows = res.history
+    per_step = [e.value for e in acc.Scalars("layer/max_iter")]
+    assert (
+        sum(per_step[:3]) == rows[0]["layer_max_iter"]
+        and sum(per_step[3:]) == rows[1]["layer_max_iter"]
+    )
+    assert sum(rows[0][f"layer_{s.value}"] for s in STATUS_CODES) == 8 * cfg.model.modes
+    val = [(e.step, e.value) for e in acc.Scalars("epoch/val_minSADE")]
+    assert [s for s, _ in val] == [3, 6]
+    for (_, got), row in zip(val, rows, strict=True):
+        assert math.isclose(got, row["val_minSADE"], rel_tol=1e-6)
+    assert acc.Tags()["images"] == ["predictions"]
+    images = acc.Images("predictions")
+    assert [e.step for e in images] == [3, 6]
+    assert all(e.encoded_image_string[:8] == PNG and e.width > 100 for e in images)
+    with open(run / "metrics.csv") as f:
+        header = next(csv.reader(f))
+    assert {"lr", "layer_converged", "layer_max_iter", "layer_nonfinite"} <= set(header)
