@@ -4,8 +4,10 @@ shard plan (:mod:`scenarios.dataset`, "Work units and seeds" and "Shards")."""
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -94,6 +96,24 @@ class Scenario:
     def run_unit(self, index: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
         """Samples of unit ``index``: every schema field as ``(n_i, *shape)``."""
         raise NotImplementedError
+
+
+class RawScenario(Scenario):
+    """A scenario read from a folder of recorded files (exiD, ETH/UCY, CITR): its recipe (an
+    instance of :attr:`recipe_class`; default: the class's defaults) and the folder ``raw``
+    the recipe was made from (:meth:`from_raw` of the subclass). Only these two go to a
+    worker process."""
+
+    pickled = ("recipe", "raw")
+    #: the recipe dataclass of the scenario
+    recipe_class: type = object
+
+    def __init__(self, recipe=None, raw: str | os.PathLike | None = None):
+        cls = self.recipe_class
+        if recipe is not None and not isinstance(recipe, cls):
+            raise SpecError("recipe", f"expected {cls.__name__}, got {type(recipe).__name__}")
+        self.recipe = recipe or cls()
+        self.raw = None if raw is None else Path(raw)
 
 
 def unit_seed(seed: int, index: int) -> np.random.SeedSequence:

@@ -19,7 +19,7 @@ from epo_casadi import (
 from epo_casadi.errors import SpecError, check_size
 from epo_casadi.presets import driving_features
 
-from ..dataset import SPLITS, DatasetError, FieldSpec, Scenario
+from ..dataset import SPLITS, DatasetError, FieldSpec, RawScenario
 from ..maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
 from .lanelet import (
     LaneletMap,
@@ -38,18 +38,12 @@ from .tables import MAP_DISTANCE, MAX_GRID_CELLS
 CLASSES = ("car", "van", "truck", "bus", "trailer", "motorcycle", "other")
 
 
-class ExidScenario(Scenario):
+class ExidScenario(RawScenario):
     """Samples of the exiD layout (:mod:`scenarios.exid`); one work unit per recording.
     Construct hooks: :meth:`agent_specs`, :meth:`game_spec`, :meth:`scenes`, :meth:`cut`."""
 
     name = "exid"
-    pickled = ("recipe", "raw")
-
-    def __init__(self, recipe: ExidRecipe | None = None, raw: str | FilePath | None = None):
-        if recipe is not None and not isinstance(recipe, ExidRecipe):
-            raise SpecError("recipe", f"expected an ExidRecipe, got {type(recipe).__name__}")
-        self.recipe = recipe or ExidRecipe()
-        self.raw = None if raw is None else FilePath(raw)
+    recipe_class = ExidRecipe
 
     @classmethod
     def from_raw(cls, raw: str | FilePath, **overrides) -> ExidScenario:

@@ -69,7 +69,7 @@ import numpy as np
 from epo_casadi import PotentialGame
 from epo_casadi.errors import SpecError, check_number, check_size, short_repr
 
-from ..dataset import SPLITS, DatasetError, FieldSpec, Scenario
+from ..dataset import SPLITS, DatasetError, FieldSpec, RawScenario
 from ..files import check_input_file
 from .recipe import SceneRecipe
 from .scenes import (
@@ -375,18 +375,12 @@ def find_files(raw: str | Path) -> tuple[list[tuple[str, str]], list[str]]:
     return found, [n for n in names if n not in KNOWN_FILES]
 
 
-class EthUcyScenario(Scenario):
+class EthUcyScenario(RawScenario):
     """Samples of the ETH/UCY files (:mod:`scenarios.real.eth_ucy`); one work unit per test
     file and per training or validation part of a training file."""
 
     name = "eth-ucy"
-    pickled = ("recipe", "raw")
-
-    def __init__(self, recipe: EthUcyRecipe | None = None, raw: str | Path | None = None):
-        if recipe is not None and not isinstance(recipe, EthUcyRecipe):
-            raise SpecError("recipe", f"expected an EthUcyRecipe, got {type(recipe).__name__}")
-        self.recipe = recipe or EthUcyRecipe()
-        self.raw = None if raw is None else Path(raw)
+    recipe_class = EthUcyRecipe
 
     @classmethod
     def from_raw(cls, raw: str | Path, **overrides) -> EthUcyScenario:

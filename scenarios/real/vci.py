@@ -84,7 +84,7 @@ import numpy as np
 from epo_casadi import PotentialGame
 from epo_casadi.errors import SpecError, check_bool, check_number, check_size, short_repr
 
-from ..dataset import SPLITS, DatasetError, FieldSpec, Scenario
+from ..dataset import SPLITS, DatasetError, FieldSpec, RawScenario
 from ..files import check_input_file
 from .recipe import SceneRecipe
 from .scenes import Track, crowd_game_spec, scene_schema, stack_scenes, window_scenes
@@ -475,17 +475,11 @@ class VciRecipe(SceneRecipe):
 # --------------------------------------------------------------------------------------
 # scenario
 # --------------------------------------------------------------------------------------
-class VciScenario(Scenario):
+class VciScenario(RawScenario):
     """Scenes of vehicle-crowd clips (module docstring); one work unit per clip."""
 
     name = "vci"
-    pickled = ("recipe", "raw")
-
-    def __init__(self, recipe: VciRecipe | None = None, raw: str | FilePath | None = None):
-        if recipe is not None and not isinstance(recipe, VciRecipe):
-            raise SpecError("recipe", f"expected a VciRecipe, got {type(recipe).__name__}")
-        self.recipe = recipe or VciRecipe()
-        self.raw = None if raw is None else FilePath(raw)
+    recipe_class = VciRecipe
 
     @classmethod
     def from_raw(cls, raw: str | FilePath, **overrides) -> VciScenario:
