@@ -69,6 +69,7 @@ from epo_casadi import (
 )
 from epo_casadi.errors import SpecError
 from epo_casadi.features import Feature, ParamSpec
+from solvers.multimodal import dbscan  # scikit-learn's DBSCAN, Clustering.jl's convention
 
 __all__ = ["GoalPose", "PetersMode", "peters_game_spec", "dbscan", "solve_peters_modes"]
 
@@ -135,39 +136,6 @@ def peters_game_spec(recipe, agents: tuple[str, str] = ("robot", "pedestrian")) 
     mid = 0.5 * (r.proximity_weight[0] + r.proximity_weight[1])
     pair = [Collision(label="proximity", margin=margin, weight=math.sqrt(2 * mid))]
     return GameSpec(specs, pair, horizon=r.game_horizon, dt=r.dt)
-
-
-def dbscan(D: np.ndarray, eps: float, min_points: int) -> np.ndarray:
-    """DBSCAN labels of a precomputed distance matrix ``D (n, n)``: ``0, 1, ...`` or ``-1``.
-
-    A point is a core point when at least ``min_points`` points (itself included) lie
-    within ``D < eps`` (Clustering.jl's convention); clusters are the connected components
-    of core points plus the border points within ``eps`` of one (assigned to the first
-    such cluster in index order); the rest is noise (``-1``). Clusters are numbered in the
-    order of their first core point, so the result depends on nothing but ``D``. Written
-    here because scikit-learn is not a dependency (scipy has no DBSCAN).
-    """
-    D = np.asarray(D, float)
-    n = D.shape[0]
-    labels = np.full(n, -1, dtype=int)
-    if n == 0:
-        return labels
-    near = D < eps
-    core = near.sum(axis=1) >= min_points
-    c = 0
-    for i in range(n):
-        if not core[i] or labels[i] >= 0:
-            continue
-        labels[i] = c
-        stack = [i]
-        while stack:
-            j = stack.pop()
-            for q in np.nonzero(near[j] & (labels < 0))[0]:
-                labels[q] = c
-                if core[q]:
-                    stack.append(int(q))
-        c += 1
-    return labels
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,7 @@ __all__ = [
     "Mode",
     "MultiModalOptions",
     "MultiModalResult",
+    "dbscan",
     "passing_sides",
     "sinusoid_sampler",
     "solve_multimodal",
@@ -359,11 +360,50 @@ def _modes(
 
 
 def _agglomerate(D: np.ndarray, tol: float, method: str) -> np.ndarray:
-    """Flat clusters of a distance matrix cut at ``tol`` (deterministic)."""
+    """Flat clusters of a distance matrix cut at ``tol`` (deterministic).
+
+    ``"average"`` and ``"complete"``: the dendrogram of ``scipy.cluster.hierarchy``
+    (``linkage``) cut at ``tol`` (``fcluster``, criterion ``"distance"``: clusters whose
+    cophenetic distance is ``<= tol``). ``"single"``: that cut is the connected components
+    of the graph ``D <= tol``, which is DBSCAN with one point per core (:func:`dbscan` with
+    ``eps`` just above ``tol``).
+    """
     if D.shape[0] == 1:
         return np.zeros(1, dtype=int)
+    if method == "single":
+        return dbscan(D, float(np.nextafter(tol, math.inf)), 1)
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
     Z = linkage(squareform(D, checks=False), method=method)
     return fcluster(Z, t=tol, criterion="distance").astype(int)
+
+
+def dbscan(D: np.ndarray, eps: float, min_points: int) -> np.ndarray:
+    """DBSCAN labels of a precomputed distance matrix ``D (n, n)``: ``0, 1, ...`` or ``-1``.
+
+    A point is a core point when at least ``min_points`` points (itself included) lie
+    within ``D < eps`` (Clustering.jl's convention); clusters are the connected components
+    of core points plus the border points within ``eps`` of one (assigned to the first
+    such cluster in index order); the rest is noise (``-1``). Clusters are numbered in the
+    order of their first core point, so the result depends on nothing but ``D``.
+
+    scikit-learn's ``DBSCAN(metric="precomputed", eps=0.5, min_samples=min_points)`` on
+    the 0/1 matrix ``D >= eps`` (neighbours: entries ``<= 0.5``, i.e. ``D < eps``, so no
+    rounding at ``eps`` is involved): the same labels, numbering included (it grows the
+    clusters from their first core point in index order, a border point keeping the
+    first cluster that reaches it).
+    """
+    from sklearn.cluster import DBSCAN  # imported here: `import solvers` stays fast
+
+    D = np.asarray(D, dtype=float)
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise SpecError("D", f"expected a square distance matrix, got shape {D.shape}")
+    if isinstance(min_points, np.integer):
+        min_points = int(min_points)
+    check_number("min_points", min_points, lo=1, integer=True)
+    if D.shape[0] == 0:
+        return np.zeros(0, dtype=int)
+    far = np.where(D < eps, 0.0, 1.0)
+    db = DBSCAN(eps=0.5, min_samples=int(min_points), metric="precomputed")
+    return db.fit_predict(far).astype(int)

@@ -232,3 +232,128 @@ def test_custom_costs_need_ilq(head_on):
     g, p, _ = head_on
     with pytest.raises(SpecError, match="costs"):
         solve_multimodal(g, p, n_samples=2, solver="lm", costs=g.function("agent_costs"))
+
+
+# --------------------------------------------------------------------------------------
+# clustering: scikit-learn's DBSCAN against the rules it replaces
+# --------------------------------------------------------------------------------------
+def _dbscan_loop(D, eps, min_points):
+    """DBSCAN written out (the toolkit's own loop before scikit-learn): core points have at
+    least ``min_points`` points (themselves included) at ``D < eps``; clusters grow from the
+    first unlabelled core point in index order; a border point keeps the first cluster."""
+    n = D.shape[0]
+    labels = np.full(n, -1, dtype=int)
+    near = D < eps
+    core = near.sum(axis=1) >= min_points
+    c = 0
+    for i in range(n):
+        if not core[i] or labels[i] >= 0:
+            continue
+        labels[i] = c
+        stack = [i]
+        while stack:
+            j = stack.pop()
+            for q in np.nonzero(near[j] & (labels < 0))[0]:
+                labels[q] = c
+                if core[q]:
+                    stack.append(int(q))
+        c += 1
+    return labels
+
+
+def _components(D, tol):
+    """Connected components of the graph ``D <= tol`` (breadth first), numbered by their
+    smallest member."""
+    n = D.shape[0]
+    lab = np.full(n, -1, dtype=int)
+    c = 0
+    for i in range(n):
+        if lab[i] >= 0:
+            continue
+        lab[i], todo = c, [i]
+        while todo:
+            j = todo.pop()
+            for q in np.nonzero((D[j] <= tol) & (lab < 0))[0]:
+                lab[q] = c
+                todo.append(int(q))
+        c += 1
+    return lab
+
+
+def _canonical(labels):
+    """Labels renumbered by first appearance (noise stays -1): equal for equal partitions."""
+    out, seen = np.full(len(labels), -1), {}
+    for i, v in enumerate(labels):
+        if v >= 0:
+            out[i] = seen.setdefault(int(v), len(seen))
+    return out
+
+
+def _sq_state_distances(S):
+    sq = np.sum(S**2, axis=1)
+    D = np.maximum(sq[:, None] + sq[None, :] - 2 * S @ S.T, 0.0)
+    np.fill_diagonal(D, 0.0)
+    return D
+
+
+def _point_sets():
+    rng = np.random.default_rng(0)
+    P = rng.normal(0, 1, (40, 2)) + np.repeat([[0, 0], [6, 0], [3, 5]], [15, 15, 10], axis=0)
+    yield np.sum((P[:, None] - P[None]) ** 2, axis=-1)
+    grid = np.arange(12.0)  # distances exactly on eps (ties): 1, 2, ... apart
+    yield np.abs(grid[:, None] - grid[None])
+
+
+def test_dbscan_is_the_written_out_rule(head_on):
+    from solvers.multimodal import dbscan
+
+    g, p, res = head_on
+    sets = list(_point_sets())
+    sets.append(_sq_state_distances(res.results.states))  # the Peters clustering's distance
+    sets.append(trajectory_distances(g, res.results.states))
+    for D in sets:
+        scale = np.median(D[D > 0])
+        for eps in (0.0, 1.0, 2.0, 0.3 * scale, scale, 3.0 * scale, np.inf):
+            for k in (1, 2, 3, 5):
+                got = dbscan(D, eps, k)
+                np.testing.assert_array_equal(got, _dbscan_loop(D, eps, k))  # numbering too
+    # on the solved set (modes 0.3 m apart, members within 0.01 m) DBSCAN finds the modes
+    D = trajectory_distances(g, res.results.states)
+    np.testing.assert_array_equal(_canonical(dbscan(D, 0.3, 2)), _canonical(res.labels))
+    with pytest.raises(SpecError, match="min_points"):
+        dbscan(D, 1.0, 0)
+
+
+def test_single_linkage_is_dbscan_with_one_point(head_on):
+    """The single-linkage dendrogram cut at ``tol`` (scipy, cophenetic distance <= tol) is
+    the connected components of ``D <= tol``, which is DBSCAN with ``min_points = 1`` and
+    ``eps`` just above ``tol`` (``D < eps``): the same partition, ties at ``tol`` included."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    from solvers.multimodal import _agglomerate
+
+    g, p, res = head_on
+    sets = [*_point_sets(), trajectory_distances(g, res.results.states)]
+    for D in sets:
+        Z = linkage(squareform(D, checks=False), method="single")
+        for tol in (0.5, 1.0, 2.0, 3.0, float(np.median(D))):
+            want = _canonical(fcluster(Z, t=tol, criterion="distance"))
+            np.testing.assert_array_equal(_canonical(_agglomerate(D, tol, "single")), want)
+            np.testing.assert_array_equal(_canonical(_components(D, tol)), want)
+    # solve_multimodal with single linkage: the same modes as the default average linkage
+    # on this well separated set
+    single = solve_multimodal(g, p, n_samples=N_SAMPLES, seed=0, clustering={"linkage": "single"})
+    np.testing.assert_array_equal(single.labels, res.labels)
+
+
+def test_clustering_library_is_imported_on_use_only():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, solvers, solvers.multimodal, scenarios.rpi_peters\n"
+        "print('sklearn' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False"

@@ -6,12 +6,17 @@ the iteration: linearize and solve the LQ game (:meth:`SolveOnce.linearize`), tr
 along the feedback policy (:meth:`SolveOnce._line_search`), then accept one, raise the
 regularization, or blend the kinks (:mod:`solvers.ilq.kinks`); at the tolerance, judge
 it at the requested regularization and the exact kinks (:meth:`SolveOnce._at_tolerance`).
+
+:class:`BatchSolve` runs the same iteration for many starts at once (:func:`solve_starts`,
+what :func:`solvers.ilq.solve_ilq` uses for a compiled batch): one evaluation per round
+for all running starts, each start's result the one :class:`SolveOnce` gives.
 """
 
 from __future__ import annotations
 
 import math
 import time
+import weakref
 
 import numpy as np
 
@@ -20,7 +25,7 @@ from ..result import SolveResult, Status, StopReason
 from ..stages import from_stages, to_stages
 from . import kinks
 
-__all__ = ["SolveOnce"]
+__all__ = ["BatchSolve", "SolveOnce", "batchable", "solve_starts"]
 
 _MAX_MU = 1e8  # largest global regularization the adaptive retries reach
 _MIN_MU = 1e-4  # first raised regularization; below it, a lowered one returns to mu0
@@ -86,8 +91,12 @@ class SolveOnce:
         finite = ok and math.isfinite(res) and bool(np.isfinite(C).all())
         # RMS of a; math.fsum is exactly rounded, so the merit (and every accept/reject
         # decision) does not depend on summation order, SIMD alignment or BLAS threads
-        a2 = (a * a).ravel().tolist()
-        merit = math.sqrt(math.fsum(a2) / len(a2)) if a2 else 0.0
+        with np.errstate(over="ignore"):  # |a| > 1e154: an infinite merit
+            a2 = (a * a).ravel().tolist()
+        try:
+            merit = math.sqrt(math.fsum(a2) / len(a2)) if a2 else 0.0
+        except OverflowError:  # finite squares whose sum exceeds the float range
+            merit = math.inf
         return C, E, PA, mu, res if finite else math.inf, merit if finite else math.inf
 
     def take(self, lin) -> None:
@@ -376,3 +385,429 @@ def _max(a):
         return m
     a = a[np.isfinite(a)]
     return float(a.max()) if a.size else 0.0
+
+
+# --------------------------------------------------------------------------------------
+# many starts at once
+# --------------------------------------------------------------------------------------
+# what a start's pending evaluation is for (BatchSolve.phase)
+_INIT, _TRIAL, _RESET, _RELIN, _FINAL = range(5)
+# (trial evaluation, mapped rollout) of a compiled solver, keyed by its CompiledTrial
+_BATCH_FNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def batchable(s, opts) -> bool:
+    """Whether :class:`BatchSolve` applies to solver ``s`` with ``opts``: the one-call
+    trial in generated C (``compiled=True``, the game's own costs) and the residual line
+    search (after :meth:`solvers.ilq.ILQSolver.compile`)."""
+    return (
+        bool(opts.compiled)
+        and opts.line_search == "residual"
+        and s.kink_pins is None
+        and s._ftrial is not None
+    )
+
+
+def solve_starts(s, P: np.ndarray, U0: np.ndarray, opts) -> list[SolveResult]:
+    """Solve problem ``P[b] (n_p,)`` from ``U0[b] (n_u,)`` for every ``b``: per start the
+    result of ``s.solve(P[b], U0[b], opts)``.
+
+    Where :func:`batchable`, all starts iterate together (:class:`BatchSolve`), the rare
+    branches (kink blending, the restart from the open-loop equilibrium) per start; else
+    one solve after the other. ``s``: the :class:`solvers.ilq.ILQSolver` of
+    :func:`solvers.ilq.get_solver` for ``opts``.
+    """
+    if opts.compiled:
+        s.compile()
+    if P.shape[0] < 2 or not batchable(s, opts):
+        return [s.solve(P[b], U0[b], opts) for b in range(P.shape[0])]
+    t0 = time.perf_counter()
+    runs = BatchSolve(s, P, U0, opts, s.backward, t0).run()
+    out = []
+    for b, run in enumerate(runs):
+        res = s._solve_once(P[b], U0[b], opts, s.backward, opts.max_iter, t0, once=run)
+        out.append(s._restart(res, P[b], U0[b], opts, s.backward, t0))
+    return out
+
+
+def _batch_functions(s):
+    """The solver's one-call trial over many starts (:class:`solvers.fast_ilq.
+    CompiledWideTrial`, else :class:`_MappedTrial`) and its compiled rollout mapped over
+    the starts (:class:`solvers.batch.BatchFunction`); built once per compiled solver."""
+    fns = _BATCH_FNS.get(s._ftrial)
+    if fns is None:
+        from .. import fast_ilq
+        from ..batch import BatchFunction
+
+        trial = fast_ilq.wide_trial(s) or _MappedTrial(s)
+        fns = (trial, BatchFunction(s._croll.call.f))
+        _BATCH_FNS[s._ftrial] = fns
+    return fns
+
+
+#: unit roundoff of numpy's longdouble (2^-64 with x87 extended precision)
+_LD_U = float(np.finfo(np.longdouble).eps) / 2
+
+
+def _exact_sums(x: np.ndarray) -> np.ndarray:
+    """Row sums of ``x (m, n)`` (finite, >= 0) rounded once to float64, as ``math.fsum``.
+
+    The rows are summed pairwise in numpy's longdouble (zeros padded to ``2^d`` columns,
+    ``d`` levels of halves added): for terms >= 0 the result ``s`` is within ``d u S``
+    of the exact sum ``S`` (``u`` the longdouble's unit roundoff), so where both ends of
+    ``s -/+ 2 d u s`` round to the same float64, that float64 is the exactly rounded sum
+    (rounding is monotone). The other rows (a sum near a rounding boundary, or no wider
+    longdouble) take ``math.fsum``.
+    """
+    m, n = x.shape
+    out = np.zeros(m)
+    if not x.size:
+        return out
+    d = max(1, (n - 1).bit_length())
+    s = np.zeros((m, 1 << d), dtype=np.longdouble)
+    s[:, :n] = x
+    for _ in range(d):
+        h = s.shape[1] // 2
+        s = s[:, :h] + s[:, h:]
+    s = s[:, 0]
+    e = s * np.longdouble(2 * d * _LD_U)
+    lo, hi = (s - e).astype(np.float64), (s + e).astype(np.float64)
+    sure = lo == hi
+    out[sure] = lo[sure]
+    for j in np.nonzero(~sure)[0]:
+        out[j] = math.fsum(x[j].tolist())
+    return out
+
+
+class _MappedTrial:
+    """The compiled one-call trial mapped over the starts (a
+    :class:`solvers.batch.BatchFunction`), with the per-start stats of
+    :class:`solvers.fast_ilq.CompiledWideTrial` from :func:`solvers.fast_ilq.trial_stats`."""
+
+    def __init__(self, s):
+        from ..batch import BatchFunction
+
+        self.s, self.f = s, BatchFunction(s._ftrial.call)
+        self._in: list = []
+
+    def inputs(self, m: int) -> list[np.ndarray]:
+        f = self.f.f
+        self._in = [np.zeros((m, f.nnz_in(i))) for i in range(f.n_in())]
+        return self._in
+
+    def run(self, m: int) -> list[np.ndarray]:
+        from ..fast_ilq import trial_stats
+
+        X, U, PA, mu, r = self.f(*self._in)
+        return [X, U, PA, mu, r, trial_stats(self.s, X, U, PA, r)]
+
+
+class _Evaluation:
+    """The one-call trials of the pending starts ``idx`` (``m`` of them), evaluated in one
+    call for all, and their linearizations as :meth:`SolveOnce.linearize` computes them:
+    ``X (m, K+1, nx)``, ``U``, ``PA``, ``mu``, ``r`` (residual rows), ``res``, ``merit``
+    and ``good`` (a trial's trajectory is finite and inside the trust region)."""
+
+    def __init__(self, bs: BatchSolve, idx: list[int]):
+        s, opts = bs.s, bs.opts
+        K, nx, nu, nxs, N = s.K, s.nx, s.nu, s.nxs, s.N
+        ia = np.asarray(idx, dtype=np.intp)
+        m, B = ia.size, bs.B
+        trial = np.array([bs.phase[b] == _TRIAL for b in idx])
+        i_x0, i_X, i_U, i_PA, i_eps, i_p, i_mu, i_d = bs.trial.inputs(m)
+        np.take(bs.x0, ia, axis=0, out=i_x0)
+        np.take(bs.X.reshape(B, -1), ia, axis=0, out=i_X)
+        np.take(bs.U.reshape(B, -1), ia, axis=0, out=i_U)
+        np.take(bs.PA.reshape(B, -1), ia, axis=0, out=i_PA)
+        i_PA[~trial] = 0.0  # a linearization at (Xbar, Ubar): a rollout with P = 0, eps = 0
+        i_eps[:, 0] = [bs.eps[b] if t else 0.0 for b, t in zip(idx, trial, strict=True)]
+        np.take(bs.P, ia, axis=0, out=i_p)
+        mu = i_mu[:, 0]
+        mu[:] = [bs.mu_run[b] for b in idx]
+        i_d.fill(bs.delta)
+        Xr, P = i_X.reshape(m, K + 1, nx), i_p
+        outs = bs.trial.run(m)
+        self.X = outs[0].reshape(m, K + 1, nx)
+        self.U = outs[1].reshape(m, K, nu)
+        self.PA = outs[2].reshape(m, K, nu, nxs + 1)
+        self.mu = outs[3].reshape(m, K, N)
+        self.r = outs[4]
+        st = outs[5]
+        ok, self.good, res, asum, c_ok = (
+            st[:, 0] != 0,
+            st[:, 1] != 0,
+            st[:, 2],
+            st[:, 3],
+            st[:, 4] != 0,
+        )
+        if opts.max_state_step < math.inf:
+            step = np.max(np.abs(self.X - Xr), axis=(1, 2))
+            self.good &= step <= opts.max_state_step
+        used = ~trial | self.good  # the linearizations an iteration reads
+        for j in np.nonzero(used & ~ok)[0]:  # a singular stage: as CompiledTrial does
+            s._ftrial.quad(self.X[j], self.U[j], P[j])  # fills Lam and Phi
+            self.PA[j], self.mu[j], ok[j] = s._numpy_backward(float(mu[j]), bs.delta)
+            res[j], asum[j] = float(np.max(np.abs(self.PA[j][:, :, -1]))), math.nan
+        # C = 1/2 member @ r2 is finite when r2 is and sums far below overflow; the
+        # others as SolveOnce.linearize computes them
+        for j in np.nonzero(used & ~c_ok)[0]:
+            c_ok[j] = bool(np.isfinite(0.5 * (bs.member @ (self.r[j] * self.r[j]))).all())
+        finite = ok & np.isfinite(res) & c_ok
+        self.res = np.where(finite, res, math.inf)
+        # merit RMS(a), with the exactly rounded sum of a*a (as SolveOnce.linearize)
+        rows = np.nonzero(finite & used)[0]
+        sums = asum[rows]
+        redo = np.isnan(sums)
+        if redo.any():
+            a = self.PA[rows[redo]][..., -1].reshape(int(redo.sum()), -1)
+            sums[redo] = _exact_sums(a * a)
+        self.merit = np.full(m, math.inf)
+        self.merit[rows] = np.sqrt(sums / (K * nu))
+        # E = 1/2 |r|^2 per start (row sums equal numpy's sums of the single rows)
+        self.E = 0.5 * np.sum(self.r * self.r, axis=1)
+
+
+class BatchSolve:
+    """The iteration of :class:`SolveOnce` for ``B`` starts at once: problems
+    ``P (B, n_p)`` from ``U0 (B, n_u)``, each start with its own trajectory,
+    regularization, step size, line-search memory and stop.
+
+    Every round evaluates the pending trial (or linearization) of every running start in
+    one mapped call of the compiled one-call trial (:class:`_Evaluation`), then moves each
+    start on by the rules of :class:`SolveOnce` (line search, acceptance, regularization,
+    judging at the tolerance) until its next evaluation or its stop. The numbers are the
+    per-start solve's: the same compiled function on the same inputs, the same merit
+    (exactly rounded), the same decisions. A start whose line search fails where
+    :meth:`SolveOnce._no_step` would blend kinks continues alone from that point as a
+    :class:`SolveOnce`. :meth:`run` returns per start a callable giving its result
+    (``SolveOnce.run``). ``trial``: the evaluation of the trials (default: the solver's
+    :class:`solvers.fast_ilq.CompiledWideTrial`, else :class:`_MappedTrial`).
+    """
+
+    def __init__(self, s, P, U0, opts, backward, t0: float, trial=None):
+        self.s, self.opts, self.backward, self.t0 = s, opts, backward, t0
+        self.trial, roll = _batch_functions(s)
+        if trial is not None:  # another evaluation of the one-call trial (tests)
+            self.trial = trial
+        self.member = s._ftrial.quad.member
+        K, nx, nu, nxs, na, N = s.K, s.nx, s.nu, s.nxs, s.na, s.N
+        self.P = np.ascontiguousarray(P, dtype=float)
+        B = self.B = self.P.shape[0]
+        self.x0 = self.P[:, s._x0_idx]
+        _, Ubar = to_stages(s.game, None, np.asarray(U0, float))
+        # the starts' rollouts (SolveOnce.__init__): Xr = 0, P = 0, eps = 0
+        S, U = roll(
+            np.concatenate([self.x0, np.zeros((B, na))], axis=1),
+            np.zeros((B, K * nx)),
+            np.ascontiguousarray(Ubar).reshape(B, -1),
+            np.zeros((B, K * nu * (nxs + 1))),
+            np.zeros((B, K)),
+        )
+        self.X = np.empty((B, K + 1, nx))
+        self.X[:, 0] = self.x0
+        self.X[:, 1:] = S.reshape(B, K, nx + na)[:, :, :nx]
+        self.U = U.reshape(B, K, nu).copy()
+        # the current linearization per start
+        self.PA = np.zeros((B, K, nu, nxs + 1))
+        self.mu = np.zeros((B, K, N))
+        self.r = np.zeros((B, self.member.shape[1]))
+        self.E = [math.nan] * B
+        self.res = [math.inf] * B
+        self.merit = [math.inf] * B
+        # the per-start state of SolveOnce
+        self.mu0, self.delta = float(opts.regularization), float(opts.min_curvature)
+        self.mu_run = [self.mu0] * B
+        self.it = [0] * B
+        self.status = [Status.MAX_ITER] * B
+        self.stop = [StopReason.MAX_ITER] * B
+        self.hist_E: list[list] = [[] for _ in range(B)]
+        self.hist_res: list[list] = [[] for _ in range(B)]
+        self.steps: list[list] = [[] for _ in range(B)]
+        self.merits: list[list] = [[] for _ in range(B)]
+        self.eps_next = [float(opts.step_size)] * B
+        self.max_mu = [0.0] * B
+        self.resets = [0] * B
+        self.rescue = [False] * B
+        # the pending evaluation: its phase, trial step, rejected trials, reference merit
+        self.phase = [_INIT] * B
+        self.eps = [0.0] * B
+        self.trials = [0] * B
+        self.ref = [math.inf] * B
+        self.runs: list = [None] * B
+        # takes and accepted trials of the current round: start -> row of the evaluation
+        self._pending_lin: dict[int, int] = {}
+        self._pending_xu: dict[int, int] = {}
+        self._ev = None
+
+    def run(self) -> list:
+        """Iterate every start to its stop; per start a callable giving its result."""
+        s = self.s
+        s.kink_width = 0.0
+        pending = list(range(self.B))
+        while pending:
+            # non-finite numbers are detected per start; numpy's warnings would repeat that
+            with np.errstate(all="ignore"):
+                ev = self._ev = _Evaluation(self, pending)
+            pending = [b for j, b in enumerate(pending) if self._advance(b, j, ev)]
+            self._flush(ev)
+        for b in range(self.B):
+            if self.runs[b] is None:
+                self.runs[b] = self._once(b).run
+        return self.runs
+
+    # ---- one start ----------------------------------------------------------------------
+    def _advance(self, b: int, j: int, ev: _Evaluation) -> bool:
+        """Move start ``b`` on with its evaluation ``ev[j]``; True when it waits for the next."""
+        opts, ph = self.opts, self.phase[b]
+        res = float(ev.res[j])
+        if ph == _INIT:  # SolveOnce.__init__: relinearize, then the histories
+            if not math.isfinite(res) and self._bump(b):
+                return True
+            self._take(b, j, ev)
+            fin = math.isfinite(res)
+            self.status[b] = Status.MAX_ITER if fin else Status.NONFINITE
+            self.stop[b] = StopReason.MAX_ITER if fin else StopReason.NONFINITE
+            self.hist_E[b], self.hist_res[b] = [self.E[b]], [res]
+            self.merits[b] = [self.merit[b]]
+            self.max_mu[b] = _max(ev.mu[j])
+            return self._loop(b)
+        if ph == _RESET:  # SolveOnce._at_tolerance, after the linearization at mu0
+            self.resets[b] += 1
+            if not math.isfinite(res):
+                self.status[b], self.stop[b] = Status.STALLED, StopReason.SINGULAR
+                return False
+            self._take(b, j, ev)
+            if res > opts.tol and self.resets[b] > _MAX_RESETS:
+                self.status[b], self.stop[b] = Status.STALLED, StopReason.REGULARIZED_ONLY
+                return False
+            self.merits[b] = [self.merit[b]]
+            return self._loop(b)
+        if ph == _TRIAL:  # SolveOnce._line_search
+            eps = self.eps[b]
+            if ev.good[j] and ev.merit[j] <= (1.0 - _ARMIJO * eps) * self.ref[b]:
+                self.it[b] += 1
+                self._accept(b, j, ev, eps)
+                return self._loop(b)
+            self.trials[b] += 1
+            self.eps[b] = eps * opts.backtrack
+            if self.trials[b] <= opts.max_backtracks:
+                return True
+            self.it[b] += 1  # SolveOnce._iterate, no trial passed: SolveOnce._no_step
+            self.rescue[b] = opts.adaptive_step
+            if self.mu_run[b] <= self.mu0 and opts.kink_widths and self.s.has_kinks:
+                self._hand_off(b)
+                return False
+            if not self._bump(b):
+                self.status[b], self.stop[b] = Status.STALLED, StopReason.LINE_SEARCH
+                if self.mu_run[b] > self.mu0:  # max |a| at the requested regularization
+                    self.mu_run[b] = self.mu0
+                    self.phase[b] = _FINAL
+                    return True
+                return False
+            self.phase[b] = _RELIN
+            return True
+        if ph == _RELIN:  # SolveOnce.relinearize after a raised regularization
+            if not math.isfinite(res) and self._bump(b):
+                return True
+            self.merits[b] = []
+            self.eps_next[b] = float(opts.step_size)
+            self._record(b, j, ev, 0.0)
+            return self._loop(b)
+        if math.isfinite(res):  # _FINAL
+            self._take(b, j, ev)
+        return False
+
+    def _loop(self, b: int) -> bool:
+        """The top of :meth:`SolveOnce.run` for start ``b``: its stop, or its next
+        evaluation (True)."""
+        if self.status[b] is not Status.MAX_ITER:
+            return False
+        if self.res[b] <= self.opts.tol:  # SolveOnce._at_tolerance (the kinks are exact)
+            if self.mu_run[b] <= self.mu0:
+                self.status[b], self.stop[b] = Status.CONVERGED, StopReason.TOL
+                return False
+            self.mu_run[b] = self.mu0
+            self.phase[b] = _RESET
+            return True
+        if self.it[b] >= self.opts.max_iter:
+            return False
+        self.ref[b] = max(self.merits[b][-self.opts.memory :])
+        self.eps[b], self.trials[b] = self.eps_next[b], 0
+        self.phase[b] = _TRIAL
+        return True
+
+    def _take(self, b, j, ev) -> None:
+        """Make ``ev[j]`` start ``b``'s linearization (its arrays at :meth:`_flush`)."""
+        self._pending_lin[b] = j
+        self.E[b], self.res[b], self.merit[b] = float(ev.E[j]), float(ev.res[j]), float(ev.merit[j])
+
+    def _flush(self, ev) -> None:
+        """Copy the round's taken linearizations and accepted trajectories from ``ev``."""
+        for pend, names in ((self._pending_lin, ("PA", "mu", "r")), (self._pending_xu, ("X", "U"))):
+            if pend:
+                bs, js = list(pend), list(pend.values())
+                for name in names:
+                    getattr(self, name)[bs] = getattr(ev, name)[js]
+                pend.clear()
+
+    def _bump(self, b) -> bool:
+        if self.mu_run[b] >= _MAX_MU:
+            return False
+        self.mu_run[b] = max(10.0 * self.mu_run[b], _MIN_MU)
+        return True
+
+    def _accept(self, b, j, ev, eps) -> None:
+        """:meth:`SolveOnce._accept` and :meth:`SolveOnce._record` of the trial ``ev[j]``."""
+        opts = self.opts
+        self._pending_xu[b] = j  # the trial's trajectory (copied at _flush)
+        self.eps_next[b] = float(opts.step_size)
+        if self.rescue[b] and self.mu_run[b] <= self.mu0:
+            a_old, a_new = self.PA[b][:, :, -1], ev.PA[j][:, :, -1]
+            self.eps_next[b] = _secant_step(a_old, a_new, eps, self.eps_next[b])
+        if self.mu_run[b] > self.mu0:  # success: lower the regularization again
+            mu = self.mu_run[b] / 10.0 if self.mu_run[b] / 10.0 >= _MIN_MU else self.mu0
+            self.mu_run[b] = max(mu, self.mu0)
+            self.merits[b] = []
+        self._record(b, j, ev, eps)
+
+    def _record(self, b, j, ev, eps) -> None:
+        self._take(b, j, ev)
+        self.merits[b].append(self.merit[b])
+        self.steps[b].append(eps)
+        self.hist_E[b].append(self.E[b])
+        self.hist_res[b].append(self.res[b])
+        self.max_mu[b] = max(self.max_mu[b], _max(ev.mu[j]))
+        if not math.isfinite(self.res[b]):
+            self.status[b], self.stop[b] = Status.NONFINITE, StopReason.NONFINITE
+
+    def _once(self, b: int) -> SolveOnce:
+        """Start ``b``'s state as a :class:`SolveOnce` (to continue it or read its result)."""
+        s, opts = self.s, self.opts
+        so = SolveOnce.__new__(SolveOnce)
+        so.s, so.p, so.opts, so.backward = s, self.P[b], opts, self.backward
+        so.max_iter, so.t0 = opts.max_iter, self.t0
+        so.Xbar, so.Ubar = self.X[b].copy(), self.U[b].copy()
+        so.mu0, so.delta, so.mu_run = self.mu0, self.delta, self.mu_run[b]
+        so.widths, so.continuation = list(opts.kink_widths), []
+        so.it, so.on_kink, so.failed_width = self.it[b], None, 0.0
+        with np.errstate(over="ignore", invalid="ignore"):  # as non-finite as it is
+            so.C, so.E = 0.5 * (self.member @ (self.r[b] * self.r[b])), self.E[b]
+        so.PA, so.mu = self.PA[b].copy(), self.mu[b].copy()
+        so.res, so.merit = self.res[b], self.merit[b]
+        so.status, so.stop = self.status[b], self.stop[b]
+        so.hist_E, so.hist_res, so.steps = self.hist_E[b], self.hist_res[b], self.steps[b]
+        so.merits, so.eps_next, so.max_mu = self.merits[b], self.eps_next[b], self.max_mu[b]
+        so.resets, so.rescue = self.resets[b], self.rescue[b]
+        s.kink_width = 0.0
+        return so
+
+    def _hand_off(self, b: int) -> None:
+        """Start ``b`` goes on alone (kink blending: :meth:`SolveOnce._no_step`), to its end
+        now (the blend width is the solver's, one solve at a time)."""
+        self._flush(self._ev)
+        so = self._once(b)
+        nxt = so._no_step()
+        if nxt is not None:
+            so._record(*nxt)
+        result = so.run()
+        self.runs[b] = lambda: result

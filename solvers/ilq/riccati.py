@@ -221,6 +221,7 @@ class CompiledRiccati:
             [Zin, lam, phi, mu0, delta],
             [ca.horzcat(*Zout), ca.vec(PA.T), ca.vertcat(*mus)],
         )
+        self.stage = stage  # one stage (solvers.fast_ilq: the same SX over a batch of starts)
         self.n_instructions = stage.n_instructions()
         # The fold over K stages is a loop in the generated C around one stage function, so
         # compile time does not grow with K (the library is cached per structure, K included:

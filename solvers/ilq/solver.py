@@ -19,10 +19,10 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from ..lm import check_options
-from ..result import SolveResult, Status, StopReason
+from ..result import Equilibrium, SolveResult, Status, StopReason
 from ..stages import _stage_index
 from . import riccati
-from .iteration import SolveOnce
+from .iteration import SolveOnce, solve_starts
 from .kinks import build_kink_quad
 from .options import HESSIANS, ILQOptions
 from .quadratize import build_quadratize
@@ -232,6 +232,12 @@ class ILQSolver:
         if U0.shape[0] != 1:
             raise SpecError("u0/p", "ILQSolver.solve takes one problem; solve_ilq takes a batch")
         res = self._solve_once(P[0], U0[0], opts, backward, opts.max_iter, t0)
+        return self._restart(res, P[0], U0[0], opts, backward, t0)
+
+    def _restart(self, res, p, u0, opts, backward, t0) -> SolveResult:
+        """``res`` of the solve of ``p`` from ``u0``, or the restart from the open-loop
+        equilibrium where it stalled (``ILQOptions.restart``)."""
+        g = self.game
         if not (
             opts.restart
             and not self.custom_costs
@@ -244,9 +250,9 @@ class ILQSolver:
         # start once more from the open-loop equilibrium, the potential's minimizer
         from ..lm import solve_lm
 
-        lm = solve_lm(g, P[0], U0[0])
+        lm = solve_lm(g, p, u0)
         again = self._solve_once(
-            P[0], np.asarray(lm.controls), opts, backward, opts.max_iter - int(res.iterations), t0
+            p, np.asarray(lm.controls), opts, backward, opts.max_iter - int(res.iterations), t0
         )
         info = {"at": int(res.iterations), "stop": res.info["stop"], "lm_status": lm.status.value}
         # the restart's result when it converged or found a kink equilibrium, else the first
@@ -258,11 +264,14 @@ class ILQSolver:
             info={**keep.info, "restart": {**info, "result": again.info["stop"]}},
         )
 
-    def _solve_once(self, p, u0, opts, backward, max_iter, t0) -> SolveResult:
+    def _solve_once(self, p, u0, opts, backward, max_iter, t0, once=None) -> SolveResult:
         """One iLQ solve of problem ``p (n_p,)`` from ``u0 (n_u,)``, at most ``max_iter``
         iterations (the iteration of :mod:`solvers.ilq`; :class:`solvers.ilq.iteration.
-        SolveOnce`)."""
-        return SolveOnce(self, p, u0, opts, backward, max_iter, t0).run()
+        SolveOnce`); ``once``: the run of that solve already made with other starts
+        (:func:`solvers.ilq.iteration.solve_starts`)."""
+        res = (once or SolveOnce(self, p, u0, opts, backward, max_iter, t0).run)()
+        # a feedback Nash equilibrium of the players' own costs: coupled dynamics included
+        return dataclasses.replace(res, equilibrium=Equilibrium.FEEDBACK)
 
 
 # --------------------------------------------------------------------------------------
@@ -293,7 +302,12 @@ def solve_ilq(
 
     ``p``: ``(n_p,)`` or ``(B, n_p)``; ``u0``: ``(n_u,)`` or ``(B, n_u)`` (zeros if None);
     ``costs``: ``None`` (the game's agent costs) or a ``casadi.Function (x, u, p) -> C``.
-    A batch is solved problem by problem and returned as one batched result.
+    A batch is returned as one batched result, each problem's entry the solve of that
+    problem alone; with ``compiled=True`` all problems iterate together
+    (:func:`solvers.ilq.iteration.solve_starts`), else one after the other. The result's
+    ``equilibrium`` is ``feedback Nash`` (:class:`solvers.result.Equilibrium`): a feedback
+    Nash equilibrium of the players' own costs, also for games with coupled dynamics (no
+    potential is involved).
     """
     opts = check_options(ILQOptions, options, "ilq")
     solver = get_solver(game, costs, opts.hessian)
@@ -302,7 +316,7 @@ def solve_ilq(
         return solver.solve(p, u0, opts)
     U, P = game.check_inputs(game.zero_controls() if u0 is None else u0, p)
     t0 = time.perf_counter()
-    rs = [solver.solve(P[b], U[b], opts) for b in range(U.shape[0])]
+    rs = solve_starts(solver, P, U, opts)
     return _stack(rs, time.perf_counter() - t0)
 
 
@@ -335,4 +349,5 @@ def _stack(rs: list[SolveResult], wall: float) -> SolveResult:
         grad_norm=np.array([r.grad_norm for r in rs], float),
         wall_time=wall,
         info=info,
+        equilibrium=Equilibrium.FEEDBACK,
     )
