@@ -4,8 +4,11 @@ No torch here. Every solver returns :class:`solvers.result.SolveResult` and is r
 once in the solver table :data:`solvers.registry.SOLVERS` (name, entry function, options,
 equilibrium check), which the CLI, game files, ``epo compare`` and the multi-modal solver
 read; :func:`solve_game` solves with a solver by name, :func:`register_solver` adds one.
+A solve through the table that does not converge is solved again along the collision
+weight (:mod:`solvers.continuation`, :func:`solve_with_continuation`).
 """
 
+from .continuation import solve_with_continuation
 from .ilq import ILQOptions, solve_ilq
 from .ipopt import IpoptOptions, IpoptSolver, solve_ipopt
 from .lm import LMOptions, solve_lm
@@ -44,4 +47,5 @@ __all__ = [
     "register_solver",
     "unregister_solver",
     "solve_game",
+    "solve_with_continuation",
 ]

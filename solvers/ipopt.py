@@ -155,6 +155,9 @@ class IpoptOptions:
     #: keep large Hessians of the Lagrangian on disk (docs/solvers.md, "Set-up"); off by
     #: default: loading one takes as long as building it
     cache: bool = False
+    #: when a solve ends in any status but 'converged', solve again along the collision
+    #: weight (pair weights scaled up from 0.01, warm-started; solvers.continuation)
+    continuation: bool = True
 
     def __post_init__(self):
         for name in ("max_iter", "acceptable_iter"):
@@ -165,6 +168,10 @@ class IpoptOptions:
         if self.hessian not in ("exact", "gn"):
             raise SpecError(
                 "ipopt.hessian", f"expected 'exact' or 'gn', got {short_repr(self.hessian)}"
+            )
+        if not isinstance(self.continuation, bool):
+            raise SpecError(
+                "ipopt.continuation", f"expected true or false, got {short_repr(self.continuation)}"
             )
         if not isinstance(self.cache, bool):
             raise SpecError("ipopt.cache", f"expected true or false, got {short_repr(self.cache)}")

@@ -94,6 +94,9 @@ class LMOptions:
     )
     threads: int | None = None  #: threads for mapped evaluation (None: EPO_THREADS or all cores)
     polish: int = 0  #: Newton steps (exact Hessian) after an ftol/damping stop with |grad| > gtol
+    #: when a solve ends in any status but 'converged', solve again along the collision
+    #: weight (pair weights scaled up from 0.01, warm-started; solvers.continuation)
+    continuation: bool = True
 
     def __post_init__(self):
         if (
@@ -121,7 +124,7 @@ class LMOptions:
                 "lm.damping_up/damping_down",
                 f"expected damping_up > 1 and damping_down < 1, got {self.damping_up}, {self.damping_down}",
             )
-        for name in ("adaptive_damping", "ellipsoidal", "compiled"):
+        for name in ("adaptive_damping", "ellipsoidal", "compiled", "continuation"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(
                     f"lm.{name}", f"expected true or false, got {short_repr(getattr(self, name))}"

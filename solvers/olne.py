@@ -146,6 +146,9 @@ class OLNEOptions:
     #: escapes from a converged point where a player's own Hessian has a negative
     #: eigenvalue (a step along it that lowers that player's cost, then Newton again)
     saddle_escapes: int = 5
+    #: when a solve ends in any status but 'converged', solve again along the collision
+    #: weight (pair weights scaled up from 0.01, warm-started; solvers.continuation)
+    continuation: bool = True
 
     def __post_init__(self):
         check_number("olne.max_iter", self.max_iter, lo=0, hi=MAX_STEPS, integer=True)
@@ -172,6 +175,7 @@ class OLNEOptions:
                 "olne.jacobian", f"expected 'exact' or 'gn', got {short_repr(self.jacobian)}"
             )
         check_bool("olne.second_order", self.second_order)
+        check_bool("olne.continuation", self.continuation)
         if self.start not in ("potential", "given"):
             raise SpecError(
                 "olne.start", f"expected 'potential' or 'given', got {short_repr(self.start)}"

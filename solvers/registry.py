@@ -37,6 +37,14 @@ table of its own that keeps the same rules and messages and reuses the same piec
 (:data:`~epo_casadi.registry.NAME_RE`, :func:`~epo_casadi.registry.load_class` for
 ``"module:function"`` strings).
 
+Every entry function is stored wrapped in the continuation fallback
+(:class:`solvers.continuation.ContinuedSolve`; :attr:`SolverEntry.function` is the function
+itself): a solve of one problem that ends in any status but ``converged`` is solved again
+with the game's pair weights scaled up from 0.01 to the full weight, each stage
+warm-started at the last, its solves listed in ``info["attempts"]``. An options class with
+a ``continuation`` field switches it (every built-in has one, default ``True``); one
+without the field never gets it.
+
 Options from a mapping (a game file's ``solver.<name>`` section, ``--solver
 name:key=value``) are built by one function, :meth:`SolverEntry.make_options`: unknown
 keys and bad values raise :class:`~epo_casadi.errors.SpecError` naming the field.
@@ -56,6 +64,7 @@ from epo_casadi.errors import SpecError, short_repr
 from epo_casadi.game import PotentialGame
 from epo_casadi.registry import NAME_RE, load_class
 
+from .continuation import ContinuedSolve
 from .ilq import ILQOptions, solve_ilq
 from .ipopt import IpoptOptions, solve_ipopt
 from .lm import LMOptions, prepare_lm, solve_lm
@@ -116,7 +125,9 @@ class SolverEntry:
     """One registered solver (see the module docstring for the entry function's contract)."""
 
     name: str  #: the name in every table (letters, digits, '_')
-    solve: Callable[..., SolveResult]  #: entry function solve(game, p, u0, options)
+    #: entry function solve(game, p, u0, options); :func:`register_solver` stores it
+    #: wrapped in the continuation fallback (:class:`solvers.continuation.ContinuedSolve`)
+    solve: Callable[..., SolveResult]
     options: type  #: its frozen options dataclass
     equilibrium: str = "open-loop"  #: "open-loop" or "feedback": which check certifies it
     description: str = ""  #: one line, for listings
@@ -129,6 +140,11 @@ class SolverEntry:
     iteration_limit: str | None = None
     #: check_game(options, spec, where): options that name parts of a game fit it
     check_game: Callable[..., None] | None = None
+
+    @property
+    def function(self) -> Callable[..., SolveResult]:
+        """The registered entry function itself, without the continuation fallback."""
+        return getattr(self.solve, "function", self.solve)
 
     def option_names(self) -> list[str]:
         """The fields of its options class."""
@@ -218,7 +234,7 @@ class SolverTable(Mapping):
             which = "built-in" if entry.name in self._originals else "registered"
             raise SpecError(
                 f"{where}.name",
-                f"{entry.name!r} is already the {which} solver {_qualname(old.solve)}; pick "
+                f"{entry.name!r} is already the {which} solver {_qualname(old.function)}; pick "
                 f"another name or pass replace=True",
             )
         self._table[entry.name] = entry
@@ -278,6 +294,8 @@ def register_solver(
         )
     if isinstance(entry, str):
         entry = load_class(entry, f"{where}.entry")
+    if isinstance(entry, ContinuedSolve):  # a registered entry's solve: wrap its function once
+        entry = entry.function
     if not callable(entry):
         raise SpecError(f"{where}.entry", f"expected a function, got {short_repr(entry)}")
     if isinstance(options, str):
@@ -307,7 +325,7 @@ def register_solver(
     return SOLVERS.register(
         SolverEntry(
             name=name,
-            solve=entry,
+            solve=ContinuedSolve(entry, options, iteration_limit),
             options=options,
             equilibrium=equilibrium,
             description=str(description),
@@ -338,7 +356,8 @@ def solve_game(
     options: Any = None,
 ) -> SolveResult:
     """Solve ``game`` at ``p`` from ``u0`` with the registered solver ``solver``;
-    ``options``: its options object, a mapping of its fields or None."""
+    ``options``: its options object, a mapping of its fields or None. With the
+    continuation fallback (:mod:`solvers.continuation`) unless the options switch it off."""
     entry = SOLVERS.entry(solver)
     return entry.solve(game, p, u0, entry.make_options(options))
 

@@ -12,6 +12,12 @@ function; for iLQ a fresh solve started at the returned controls must stop at on
 feed-forward term, recomputed from a new rollout, is within tolerance) and the sampled
 feedback-Nash check (solvers.feedback_nash) must find no player that gains by deviating.
 
+These call the solvers' entry functions themselves, so each family game converges at the
+first attempt. The registry's solve (``solve_game``, ``epo solve``, ``epo compare``) adds
+the continuation fallback (solvers.continuation); ``HARD_GAME`` is a game where first
+attempts end at their iteration limit, and every solver's registered default converges on
+it, by the same first-order tests and the Nash certificate.
+
 IPOPT builds an exact-Hessian NLP per game (1-3 s of CPU for 4 or more agents), so it
 sweeps the games with N <= 3 here; ``EPO_SWEEP_ALL=1`` sweeps every game (all 12 converged
 on 2026-11-30; the LM and IPOPT tests together took 38 s on 2 shared cores).
@@ -30,6 +36,8 @@ from solvers.feedback_nash import check_ilq_result
 from solvers.ilq import ILQOptions, solve_ilq
 from solvers.ipopt import solve_ipopt
 from solvers.lm import solve_lm
+from solvers.nash import nash_certificate
+from solvers.registry import solve_game
 from solvers.result import Status
 
 from .helpers import FAMILY, family_spec
@@ -150,3 +158,29 @@ def test_ilq_stalled_solve_restarts_from_the_open_loop_equilibrium():
     # a budget the first attempt uses up leaves none for a restart: its own status stays
     short = solve_ilq(g, p, options={"kink_widths": (), "max_iter": int(off.iterations)})
     assert short.status is not Status.CONVERGED and "restart" not in short.info
+
+
+#: the 6-vehicle bicycle intersection at collision weight 300, K = 20: the first attempts of
+#: LM, SQP and OLNE end at their iteration limits (LM with an energy 5.7 times the
+#: continuation's); IPOPT and iLQ converge at once
+HARD_GAME = ("intersection", 6, "bicycle", 300.0, 0, 20)
+
+
+@pytest.mark.parametrize("solver", ["lm", "ipopt", "ilq", "sqp", "olne"])
+def test_registered_defaults_converge_on_the_hard_game(solver):
+    name = "hard:" + _name(*HARD_GAME[:5], False)
+    if name not in _cache:
+        g = PotentialGame(family_spec(*HARD_GAME))
+        _cache[name] = (g, g.default_params())
+    g, p = _cache[name]
+    res = solve_game(g, p, solver=solver)
+    assert res.status is Status.CONVERGED, (res.status, res.info.get("attempts"))
+    if solver == "ilq":
+        check = check_ilq_result(g, p, res)
+        assert check.ok, check.gain
+        return
+    _check_potential_stationary(g, p, res)
+    assert nash_certificate(g, p=p, u=res.controls).verdict == "passes"
+    if solver in ("lm", "sqp", "olne"):  # their first attempts stop at max_iter
+        first = res.info["attempts"][0]
+        assert first["status"] == "max_iter" and res.info["attempts"][-1]["kept"]

@@ -73,7 +73,7 @@ def test_builtins_are_registered_once():
     }
     for name, (fn, cls, eq, limit, mm) in want.items():
         e = SOLVERS[name]
-        assert (e.solve, e.options, e.equilibrium, e.iteration_limit, e.multimodal) == (
+        assert (e.function, e.options, e.equilibrium, e.iteration_limit, e.multimodal) == (
             fn,
             cls,
             eq,
@@ -92,7 +92,7 @@ def test_duplicates_refused_unless_replace(toy):
     original = SOLVERS["lm"]
     register_solver("lm", toy_solve, LMOptions, replace=True)
     try:
-        assert SOLVERS["lm"].solve is toy_solve
+        assert SOLVERS["lm"].function is toy_solve
     finally:
         unregister_solver("lm")
     assert SOLVERS["lm"] is original
@@ -127,7 +127,7 @@ def test_registration_is_checked():
     assert "x" not in SOLVERS
     e = register_solver("x", "tests.test_solver_registry:toy_solve", "solvers.lm:LMOptions")
     try:
-        assert e.solve is toy_solve and e.options is LMOptions
+        assert e.function is toy_solve and e.options is LMOptions
     finally:
         unregister_solver("x")
 

@@ -169,6 +169,7 @@ def result_dict(
             "stop": res.info.get("stop"),
             "feedback_residual": res.info.get("stationarity") if res.solver == "ilq" else None,
             "options": res.info.get("options"),
+            "attempts": res.info.get("attempts"),  # the continuation fallback's solves
         }
     )
 
@@ -288,6 +289,15 @@ def summary_lines(game: PotentialGame, data: dict) -> list[str]:
     eq = data.get("equilibrium")
     if eq:
         lines.append(f"  equilibrium: {eq}")
+    att = data.get("attempts")
+    if att:  # solvers.continuation: the first attempt did not converge
+        kept = next((a for a in att if a.get("kept")), att[-1])
+        lines.append(
+            f"  continuation: first attempt {att[0]['status']} after {att[0]['iterations']} "
+            f"iterations; {len(att) - 1} more solves along the collision weight; kept: "
+            f"{kept['stage']} at weight scale {fmt_number(kept['weight_scale'], '.3g')} "
+            f"({kept['status']})"
+        )
     c = data.get("certificate")
     f = data.get("feedback_check")
     if c is not None:

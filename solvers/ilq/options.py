@@ -66,6 +66,9 @@ class ILQOptions:
     #: policy passes the feedback-Nash check; 'converged' if found (docs/ilq.md)
     kink_equilibrium: bool = True
     compiled: bool = False  #: per-stage work as generated C (needs a C compiler; cached on disk)
+    #: when a solve ends in any status but 'converged', solve again along the collision
+    #: weight (pair weights scaled up from 0.01, warm-started, then wider kink widths; solvers.continuation)
+    continuation: bool = True
 
     def __post_init__(self):
         _num("max_iter", self.max_iter, 0, MAX_STEPS, integer=True)
@@ -112,6 +115,10 @@ class ILQOptions:
             )
         if not isinstance(self.compiled, bool):
             raise SpecError("ilq.compiled", f"expected True or False, got {self.compiled!r}")
+        if not isinstance(self.continuation, bool):
+            raise SpecError(
+                "ilq.continuation", f"expected True or False, got {self.continuation!r}"
+            )
         if not isinstance(self.restart, bool):
             raise SpecError("ilq.restart", f"expected True or False, got {self.restart!r}")
         if not isinstance(self.kink_equilibrium, bool):

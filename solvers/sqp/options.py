@@ -37,6 +37,9 @@ class SQPOptions:
     eps_rel: float = 1e-7  #: OSQP relative tolerance
     qp_max_iter: int = 20000  #: OSQP iterations per QP
     polish: bool = True  #: OSQP solution polishing (an exact active-set step)
+    #: when a solve ends in any status but 'converged', solve again along the collision
+    #: weight (pair weights scaled up from 0.01, warm-started; solvers.continuation)
+    continuation: bool = True
 
     def __post_init__(self):
         for name in ("max_iter", "max_backtracks", "qp_max_iter"):
@@ -52,6 +55,7 @@ class SQPOptions:
             raise SpecError("sqp.armijo", f"expected 0 < armijo < 0.5, got {self.armijo}")
         check_bool("sqp.collision", self.collision)
         check_bool("sqp.polish", self.polish)
+        check_bool("sqp.continuation", self.continuation)
         object.__setattr__(
             self, "control_bounds", _normalize_bounds(self.control_bounds, "sqp.control_bounds")
         )
