@@ -20,7 +20,7 @@ pays for building and, once per game structure, compiling the layer's generated 
 * ``/ SC``: this row's CPU seconds per epoch over SC's (issue 14: ours <= 1.5).
 
 With ``--nproc 1 2`` (any counts) each row instead trains on that many local ranks
-(:func:`learning.distributed.train_parallel`: data-parallel, each rank a shard of every
+(:func:`learning.train.train_parallel`: data-parallel, each rank a shard of every
 batch of ``--batch``) and the table gives the last epoch's ``samples/s`` (rank 0's wall
 clock of the epoch's batches, as ``metrics.csv`` records it), beside the single-process
 figure, and the scaling efficiency ``rate(N) / (N * rate(1))``; the process start (torch
@@ -57,9 +57,12 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from learning.distributed import train_parallel  # noqa: E402
 from learning.models import ModelConfig, layer_execution  # noqa: E402
-from learning.train import TrainConfig, train  # noqa: E402
+from learning.train import (  # noqa: E402
+    TrainConfig,
+    train,
+    train_parallel,  # noqa: E402
+)
 
 ROWS = {
     "ours": dict(kind="epo"),

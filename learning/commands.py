@@ -199,7 +199,7 @@ def train_cmd(
 
     from scenarios.dataset import sigterm_as_interrupt
 
-    from .distributed import train_parallel
+    from .train import train_parallel
 
     ranks = int(os.environ.get("WORLD_SIZE", "1") or 1)
     if nproc > 1 and ranks > 1:

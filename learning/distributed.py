@@ -2,7 +2,8 @@
 
 :func:`learning.train.train` runs on every rank of a process group: started by ``torchrun``
 (each process reads ``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT`` from its
-environment), by ``epo train --nproc N`` or :func:`train_parallel` (which start ``N`` local
+environment), by ``epo train --nproc N`` or
+:func:`learning.train.train_parallel` (which start ``N`` local
 ranks themselves, :func:`launch`), or inside a process group a script created. One process
 (``WORLD_SIZE`` unset or 1) trains as before, with no process group.
 
@@ -67,7 +68,6 @@ __all__ = [
     "joined",
     "launch",
     "shard",
-    "train_parallel",
 ]
 
 #: how long a collective waits for the other ranks before failing
@@ -460,46 +460,3 @@ def _results(reports: list, procs) -> list:
         r, tb = tracebacks[0]
         raise RuntimeError(f"rank {r} failed:\n{tb}")
     raise DistributedError(next(rep[1] for rep in reports if rep[0] == "epo"))
-
-
-def _train_rank(data_dir, out_dir, config, progress, on_step, threads, tensorboard):
-    from .train import train
-
-    rank = dist.get_rank()
-    return train(
-        data_dir,
-        out_dir,
-        config,
-        progress=progress and rank == 0,
-        on_step=on_step,
-        threads=threads,
-        tensorboard=tensorboard,
-    )
-
-
-def train_parallel(
-    nproc: int,
-    data_dir,
-    out_dir,
-    config=None,
-    *,
-    progress: bool = True,
-    on_step=None,
-    threads: int | None = 1,
-    tensorboard: bool = False,
-):
-    """:func:`learning.train.train` on ``nproc`` local ranks (:func:`launch`); rank 0's
-    :class:`~learning.train.TrainResult`. ``nproc = 1`` trains in this process.
-    ``on_step`` runs on every rank (picklable: a module-level function)."""
-    from .train import TrainConfig, train
-
-    if isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1:
-        raise SpecError("nproc", f"expected an integer >= 1, got {nproc!r}")
-    config = TrainConfig() if config is None else config
-    if nproc == 1:
-        return train(
-            data_dir, out_dir, config, progress=progress, on_step=on_step, threads=threads,
-            tensorboard=tensorboard,
-        )  # fmt: skip
-    args = (os.fspath(data_dir), os.fspath(out_dir), config, progress, on_step, threads)
-    return launch(nproc, _train_rank, args + (tensorboard,))[0]

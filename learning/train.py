@@ -59,7 +59,7 @@ Checkpoints and resume
 
 Several processes
     In a process group (``torchrun``, ``epo train --nproc N``,
-    :func:`learning.distributed.train_parallel`) every rank runs :func:`train`: each takes
+    :func:`train_parallel`) every rank runs :func:`train`: each takes
     a shard of every batch, gradients and batch-norm statistics span the global batch,
     ``metrics.csv`` holds the global batch's numbers, rank 0 writes the files, and the
     checkpoint does not depend on the number of ranks (details: :mod:`learning.distributed`).
@@ -109,6 +109,7 @@ from .distributed import (
     convert_sync_batchnorm,
     gather_objects,
     joined,
+    launch,
     shard,
 )
 from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
@@ -125,6 +126,7 @@ __all__ = [
     "load_model",
     "torch_threads",
     "train",
+    "train_parallel",
 ]
 
 #: loss weights of the paper by model kind (imitation, goal, probability)
@@ -374,7 +376,7 @@ def train(
     ``threads``: torch threads during the call (:func:`torch_threads`; None: unchanged).
     ``tensorboard``: also write TensorBoard events to ``out_dir/tb`` (module docstring).
     In a process group of several ranks (``torchrun``,
-    :func:`~learning.distributed.train_parallel`) every rank calls this with the same
+    :func:`train_parallel`) every rank calls this with the same
     arguments: data-parallel training, rank 0 writing the files
     (:mod:`learning.distributed`).
     Returns a :class:`TrainResult`; see the module docstring for the files written.
@@ -919,3 +921,42 @@ def _train(run: _Run, pr: _Progress, resumed_from, progress: bool, on_step, tb: 
         resumed_from,
         pr.step_losses,
     )
+
+
+def _train_rank(data_dir, out_dir, config, progress, on_step, threads, tensorboard):
+    rank = torch.distributed.get_rank()
+    return train(
+        data_dir,
+        out_dir,
+        config,
+        progress=progress and rank == 0,
+        on_step=on_step,
+        threads=threads,
+        tensorboard=tensorboard,
+    )
+
+
+def train_parallel(
+    nproc: int,
+    data_dir,
+    out_dir,
+    config=None,
+    *,
+    progress: bool = True,
+    on_step=None,
+    threads: int | None = 1,
+    tensorboard: bool = False,
+):
+    """:func:`learning.train.train` on ``nproc`` local ranks (:func:`launch`); rank 0's
+    :class:`~learning.train.TrainResult`. ``nproc = 1`` trains in this process.
+    ``on_step`` runs on every rank (picklable: a module-level function)."""
+    if isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1:
+        raise SpecError("nproc", f"expected an integer >= 1, got {nproc!r}")
+    config = TrainConfig() if config is None else config
+    if nproc == 1:
+        return train(
+            data_dir, out_dir, config, progress=progress, on_step=on_step, threads=threads,
+            tensorboard=tensorboard,
+        )  # fmt: skip
+    args = (os.fspath(data_dir), os.fspath(out_dir), config, progress, on_step, threads)
+    return launch(nproc, _train_rank, args + (tensorboard,))[0]

@@ -25,10 +25,9 @@ from learning.distributed import (
     agree,
     launch,
     shard,
-    train_parallel,
 )
 from learning.models import ModelConfig
-from learning.train import TrainConfig, train
+from learning.train import TrainConfig, train, train_parallel
 from tests.test_models import TINY, synthetic_dataset
 
 #: the timing columns of metrics.csv (wall clock: differ between any two runs)

@@ -49,6 +49,15 @@ def _stop_values(tree: ast.AST) -> list[ast.expr]:
     return out
 
 
+def _members_or_list(expr: ast.expr) -> list[str]:
+    """``_members`` of a list display's items, or of the expression (a count gives none)."""
+    if isinstance(expr, ast.List):
+        return [m for e in expr.elts for m in _members(e)]
+    if isinstance(expr, ast.Constant) and isinstance(expr.value, int):
+        return []
+    return _members(expr)
+
+
 def _members(expr: ast.expr) -> list[str]:
     """The ``StopReason.X`` names an expression gives; raises on a bare string literal."""
     if isinstance(expr, ast.IfExp):
@@ -59,6 +68,8 @@ def _members(expr: ast.expr) -> list[str]:
         ]
     if isinstance(expr, ast.Attribute) and getattr(expr.value, "id", "") == "StopReason":
         return [expr.attr]
+    if isinstance(expr, ast.BinOp) and isinstance(expr.op, ast.Mult):  # [StopReason.X] * B
+        return [m for e in (expr.left, expr.right) for m in _members_or_list(e)]
     if isinstance(expr, ast.JoinedStr):  # SQP's "qp <OSQP status>"
         assert ast.unparse(expr).startswith("f'qp "), ast.unparse(expr)
         return []
