@@ -20,7 +20,12 @@ What one closed-loop period costs (``torch.set_num_threads(1)``, ``OPENBLAS_NUM_
     crossing and an unprotected left turn against an oncoming vehicle);
 (c) the UKF update (:class:`solvers.control.estimate.UKFEstimator`, one observed pedestrian)
     and the MPC step (:class:`solvers.control.MPCTracker`, horizon 20, timed by the loop of
-    ``bench/bench_mpc.py``, which has the details and the PID tracker; wall time only).
+    ``bench/bench_mpc.py``, which has the details and the PID tracker; wall time only);
+(d) the safety filter (:class:`solvers.control.safety.SafetyFilter`, defaults: horizon 20,
+    boxes): every step of closed-loop left turns (the oracle and the MPC, an aggressive
+    oncoming driver that starts slowly and accelerates, 0.3 m noise; seeds 0-2: most steps
+    pass the nominal command after one check, some solve the QP or fall back), and one
+    step that must solve the QP every call (accelerating towards a car standing 20 m ahead).
 
 Run ``python bench/bench_planning.py`` (200 calls each) or ``--quick`` (30 calls).
 A ratio below 1 keeps up with 10 Hz on one core.
@@ -272,6 +277,72 @@ def bench_mpc(calls: int, warmup: int) -> list[str]:
     return out
 
 
+def bench_filter(calls: int, warmup: int) -> list[str]:
+    """The safety filter: its time per step in closed-loop left turns, and a QP step."""
+    try:
+        from scenarios.closed_loop import SimConfig, run_episode
+        from solvers.control.safety import SafetyFilter
+        from solvers.control.types import Command, Plan
+        from solvers.control.vehicle import VehicleModel
+    except ImportError as e:  # pragma: no cover
+        return [missing("safety filter", f"not available ({e})")]
+    late = dict(
+        aggressiveness=(0.8, 1.0),
+        margin=(2.0, -2.0),
+        ego_distance=(7.0, 9.0),
+        ego_speed=(4.5, 5.5),
+        other_distance=(8.0, 12.0),
+        other_speed=(0.5, 1.5),
+    )
+    cfg = SimConfig("left-turn", planner="oracle", tracker="mpc", world_options=late)
+    wall, cpu = [], []
+    for seed in range(3):
+        world, est, planner, tracker = cfg.build()
+        sf = cfg.build_filter()
+        inner = sf.filter
+
+        def timed_filter(*args, _inner=inner):
+            t0, c0 = time.perf_counter(), time.process_time()
+            out = _inner(*args)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            return out
+
+        sf.filter = timed_filter
+        run_episode(world, est, planner, tracker, seed, safety=sf, keep_log=False)
+    out = [
+        row(
+            f"safety filter, every step of 3 closed-loop left turns ({len(wall)} steps)",
+            float(np.percentile(wall, 50)),
+            float(np.percentile(wall, 99)),
+            float(np.percentile(cpu, 50)),
+        )
+    ]
+    world = _World("", left_turn_tasks()[0])
+    world.vehicle = VehicleModel.highway()
+    world.footprint = (5.0, 2.0)
+    ego = np.array([0.0, 0.0, 10.0, 0.0])
+    other = np.array([20.0, 0.0, 0.0, math.pi])
+    K = 30
+    pred = np.zeros((1, 2, K, 4))
+    pred[0, 0] = ego
+    pred[0, 1] = other
+    plan = Plan(0.0, PERIOD, np.tile(ego, (K, 1)), np.zeros((K, 2)), pred, np.ones(1))
+    est = Estimate(other[None], np.zeros((1, 4, 4)), other[None, None], np.ones((1, 1), bool))
+    obs = Observation(0.0, ego, other[None, :2])
+    sf = SafetyFilter()
+    sf.reset(world)
+
+    def qp_step():
+        sf.applied(np.array([1.0, 0.0]))
+        c = sf.filter(obs, est, plan, Command(np.array([1.0, 0.0])))
+        if c.info["safety"]["qp"] < 1:
+            raise RuntimeError("the QP was not solved")
+
+    out.append(row("safety filter, a step that solves its QP", *timed(qp_step, calls, warmup)))
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="30 calls per row instead of 200")
@@ -284,7 +355,7 @@ def main(argv=None) -> None:
     print(f"torch {torch.__version__}, numpy {np.__version__}, period {1e3 * PERIOD:.0f} ms\n")
     print("| what | p50 ms | p99 ms | p50 / period | p99 / period | CPU p50 / period |")
     print("|---|---|---|---|---|---|")
-    for part in (bench_network, bench_oracle, bench_ukf, bench_mpc):
+    for part in (bench_network, bench_oracle, bench_ukf, bench_mpc, bench_filter):
         for line in part(calls, args.warmup):
             print(line, flush=True)
 

@@ -3,6 +3,7 @@ once and falls back to braking; the PID tracks straight and curved references.""
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -303,3 +304,50 @@ def test_options_and_inputs_are_validated():
         MPCTracker().reset(SimpleNamespace(vehicle="bicycle", dt=DT))
     with pytest.raises(SpecError, match="world.dt"):
         PIDTracker().reset(SimpleNamespace(vehicle=BICYCLE, dt=0.0))
+
+
+@pytest.mark.parametrize(
+    "veh", [UNICYCLE, dataclasses.replace(BICYCLE, no_reverse=False)], ids=["unicycle", "bicycle"]
+)
+def test_mpc_never_plans_to_reverse(veh):
+    """A reference that slows to a stop and then drives backwards at 2 m/s, on models that
+    could reverse: the MPC's predicted speeds stay >= 0 (to the solver's tolerance) in every
+    step, the car stops instead of reversing, and the bound is active (predicted speeds at
+    0 while the reference's are negative)."""
+    assert not veh.no_reverse  # the model itself would reverse
+    t = np.arange(1, 101) * DT
+    v = np.maximum(3.0 - 2.0 * t, -2.0)
+    x = np.concatenate([[0.0], np.cumsum(v[:-1] * DT)])
+    X = np.stack([x, 0 * t, v, 0 * t], axis=1)
+    Uuni = np.stack([np.gradient(v, DT), 0 * t], axis=1)
+    mpc = MPCTracker()
+    mpc.reset(_world(veh))
+    state, lowest, active = np.array([0.0, 0.0, 3.0, 0.0]), [], 0
+    for k in range(60):
+        plan = Plan(t0=k * DT, dt=DT, states=X[k : k + 30], controls=Uuni[k : k + 30])
+        cmd = mpc.control(state, plan, k * DT)
+        assert not cmd.fallback, cmd.info
+        vq = mpc.last["x"][:, 2]
+        lowest.append(vq.min())
+        active += bool(np.any(np.abs(vq) < 1e-3) and plan.states[:, 2].min() < -0.5)
+        state = veh.step(state, cmd.value, DT)
+        assert state[2] >= -1e-3, (k, state)
+    assert min(lowest) >= -1e-3 and active >= 20
+    assert abs(state[2]) < 0.05  # standing, not reversing
+
+
+def test_applied_commands_set_the_rate_limits_of_the_next_call():
+    """A safety filter changed the command: after ``applied(u)`` the next command is within
+    one rate step of ``u``, not of the tracker's own last command."""
+    veh = BICYCLE
+    x0, X, _, Uuni = _reference_run(veh)
+    for tracker in (MPCTracker(), PIDTracker()):
+        tracker.reset(_world(veh))
+        plan = Plan(t0=0.0, dt=DT, states=X[:30], controls=Uuni[:30])
+        tracker.control(x0, plan, 0.0)
+        tracker.applied(np.array([-4.0, 0.0]))  # the filter braked hard
+        plan = Plan(t0=DT, dt=DT, states=X[1:31], controls=Uuni[1:31])
+        cmd = tracker.control(veh.step(x0, np.array([-4.0, 0.0]), DT), plan, DT)
+        assert abs(cmd.value[0] + 4.0) <= veh.jerk_max * DT + 1e-6
+        tracker.applied(np.array([np.nan, 0.0]))  # not a command: ignored
+        assert np.all(np.isfinite(tracker.u_prev))

@@ -42,7 +42,8 @@ def test_bicycle_step_is_highway_env_vehicle_step(substeps):
         )
     rng = np.random.default_rng(1)
     X, U = _samples(rng, 200)  # speeds beyond +-40 m/s exercise highway-env's speed clip
-    model = VehicleModel.highway(substeps=substeps)
+    # highway-env's Vehicle as it is reverses: the plain model (the worlds' ego does not)
+    model = VehicleModel.highway(substeps=substeps, no_reverse=False)
     want = np.empty_like(X)
     for i, (x, u) in enumerate(zip(X, U, strict=True)):
         veh = kin.Vehicle(None, x[:2].copy(), heading=x[3], speed=x[2])
@@ -69,6 +70,37 @@ def test_bicycle_hand_computed_step_and_speed_clip():
     # above MAX_SPEED = 40 the acceleration becomes min(a, 40 - v) = -1
     fast = m.step([0, 0, 41.0, 0], [2.0, 0.0], DT)
     assert fast[2] == pytest.approx(41.0 - 0.1, abs=1e-14)
+
+
+@pytest.mark.parametrize("kind", ["unicycle", "bicycle"])
+def test_a_car_stops_rather_than_reverses(kind):
+    """no_reverse (the worlds' ego): a braking command that would take the speed below zero
+    stops the car exactly at zero within the step; positions move with the speed before the
+    step (explicit Euler), the free model's rows elsewhere; at standstill with a = 0 the
+    Jacobian still sees the acceleration (d v+ / d a = dt): a tracker can start the car."""
+    free = VehicleModel(kind=kind)
+    car = VehicleModel(kind=kind, no_reverse=True)
+    assert VehicleModel.highway().no_reverse and not VehicleModel().no_reverse
+    x = np.array([1.0, 2.0, 0.8, 0.3])
+    for u in ([-10.0, 0.2], [-20.0, 0.0], [-100.0, -0.3]):
+        want = free.step(x, u, DT)
+        assert want[2] < 0  # the free model reverses
+        want[2] = 0.0
+        got = car.step(x, u, DT)
+        np.testing.assert_array_equal(got, want)
+        xn = np.asarray(car.function(DT)(x, u)[0]).ravel()
+        np.testing.assert_array_equal(xn, want)
+    # a gentle brake (no sign change) is the free step bit for bit
+    np.testing.assert_array_equal(car.step(x, [-2.0, 0.1], DT), free.step(x, [-2.0, 0.1], DT))
+    # standing still: braking keeps it at 0, never below, over many steps
+    X = car.rollout(x, np.tile([-5.0, 0.0], (20, 1)), DT)
+    assert np.all(X[:, 2] >= 0.0) and X[-1, 2] == 0.0
+    _, _, B = car.function(DT)([0.0, 0.0, 0.0, 0.0], [0.0, 0.0])
+    assert float(B[2, 0]) == pytest.approx(DT)
+    # a negative speed (a hand-placed state) is brought to zero in one step
+    assert car.step([0.0, 0.0, -3.0, 0.0], [0.0, 0.0], DT)[2] == 0.0
+    with pytest.raises(SpecError, match="vehicle.no_reverse"):
+        VehicleModel(no_reverse="yes")
 
 
 @pytest.mark.parametrize("kind,substeps", [("unicycle", 1), ("bicycle", 1), ("bicycle", 2)])

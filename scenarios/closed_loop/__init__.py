@@ -8,6 +8,7 @@ One episode (:func:`run_episode`, :mod:`~scenarios.closed_loop.loop`) is the loo
     while world.outcome() == "running":
         plan = planner.plan(obs, est)
         command = tracker.control(obs.ego, plan, obs.t) if usable(plan) else brake(obs.ego)
+        command = safety.filter(obs, est, plan, command)   # the safety filter, if any
         obs = world.step(command.value)
         est = estimator.update(obs)
 
@@ -20,8 +21,8 @@ and tracking (:class:`EpisodeLog`, :mod:`~scenarios.closed_loop.log`).
 
 The package, by concern:
 
-``roles``    the tables of planners, trackers and estimators by name
-             (:data:`PLANNERS`, :func:`register_planner`, ...)
+``roles``    the tables of planners, trackers, estimators and safety filters by name
+             (:data:`PLANNERS`, :func:`register_planner`, ..., :data:`FILTERS`)
 ``config``   :class:`SimConfig`: scenario, roles and options; builds a fresh stack
 ``log``      :class:`EpisodeLog`, :class:`EpisodeResult`, :func:`usable`
 ``loop``     :func:`run_episode`, :func:`brake`
@@ -75,9 +76,11 @@ _WHERE = {
     "summary_markdown": "report",
     "write_summary": "report",
     "ESTIMATORS": "roles",
+    "FILTERS": "roles",
     "PLANNERS": "roles",
     "TRACKERS": "roles",
     "register_estimator": "roles",
+    "register_filter": "roles",
     "register_planner": "roles",
     "register_tracker": "roles",
     "MAX_EPISODES": "runner",
@@ -104,9 +107,11 @@ __all__ = [
     "summary_markdown",
     "write_summary",
     "ESTIMATORS",
+    "FILTERS",
     "PLANNERS",
     "TRACKERS",
     "register_estimator",
+    "register_filter",
     "register_planner",
     "register_tracker",
     "MAX_EPISODES",
@@ -125,9 +130,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and documentation tools
     from .report import SUMMARY_COLUMNS, error_note, summarize, summary_markdown, write_summary
     from .roles import (
         ESTIMATORS,
+        FILTERS,
         PLANNERS,
         TRACKERS,
         register_estimator,
+        register_filter,
         register_planner,
         register_tracker,
     )

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-from epo_casadi.errors import SpecError, short_repr
+from epo_casadi.errors import SpecError, check_bool, short_repr
 
-from .roles import ESTIMATORS, PLANNERS, TRACKERS
+from .roles import ESTIMATORS, FILTERS, PLANNERS, TRACKERS
 
 __all__ = ["EpisodeConfig", "SimConfig"]
 
@@ -24,6 +24,9 @@ class EpisodeConfig(Protocol):
     def build(self) -> tuple[Any, Any, Any, Any]:
         """``(world, estimator, planner, tracker)``, new objects."""
         ...
+
+    # optional: ``build_filter() -> filter or None``, the safety filter between the tracker
+    # and the world (:meth:`SimConfig.build_filter`); a configuration without it runs none
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,13 @@ class SimConfig:
     another (:func:`~scenarios.closed_loop.run_episodes` sets it from the first build:
     :meth:`pinned`). :meth:`to_dict` records ``estimator`` only when it is not
     ``"ukf"``, so every record of a UKF run reads the same.
+
+    ``safety_filter`` (on by default, for every planner and tracker): the safety filter
+    ``filter`` (a name of :data:`~scenarios.closed_loop.roles.FILTERS`, ``"qp"``:
+    :class:`solvers.control.safety.SafetyFilter`, options ``filter_options``) stands
+    between the tracker and the world (:meth:`build_filter`); ``False`` runs without it
+    (for studies). :meth:`to_dict` always records ``safety_filter`` and, with the filter
+    on, its options (and its name when it is not ``"qp"``).
     """
 
     scenario: str
@@ -55,11 +65,21 @@ class SimConfig:
     estimator_options: dict = field(default_factory=dict)
     model_checkpoint: dict | None = None
     estimator: str = "ukf"
+    safety_filter: bool = True
+    filter: str = "qp"
+    filter_options: dict = field(default_factory=dict)
 
     def __post_init__(self):
         role = PLANNERS.role(self.planner)
         TRACKERS.role(self.tracker)
         ESTIMATORS.role(self.estimator)
+        FILTERS.role(self.filter)
+        check_bool("safety_filter", self.safety_filter)
+        if not self.safety_filter and self.filter_options:
+            raise SpecError(
+                "filter_options",
+                "the safety filter is off (safety_filter false): its options would do nothing",
+            )
         if role.needs_model and not self.model:
             raise SpecError("model", f"planner {self.planner!r} needs a trained run directory")
         if self.model is not None and not role.needs_model:
@@ -67,7 +87,13 @@ class SimConfig:
             raise SpecError(
                 "model", f"a model is only used by the planners {users}, not {self.planner!r}"
             )
-        for name in ("world_options", "planner_options", "tracker_options", "estimator_options"):
+        for name in (
+            "world_options",
+            "planner_options",
+            "tracker_options",
+            "estimator_options",
+            "filter_options",
+        ):
             if not isinstance(getattr(self, name), dict):
                 raise SpecError(name, f"expected a mapping, got {getattr(self, name)!r}")
 
@@ -84,6 +110,9 @@ class SimConfig:
                 "estimator_options": dict(self.estimator_options),
             }
             | ({"estimator": self.estimator} if self.estimator != "ukf" else {})
+            | {"safety_filter": self.safety_filter}
+            | ({"filter": self.filter} if self.safety_filter and self.filter != "qp" else {})
+            | ({"filter_options": dict(self.filter_options)} if self.safety_filter else {})
             | ({"model_checkpoint": dict(self.model_checkpoint)} if self.model_checkpoint else {})
         )
 
@@ -97,7 +126,14 @@ class SimConfig:
 
     @property
     def label(self) -> str:
-        return f"{self.scenario} {self.planner}+{self.tracker}"
+        return f"{self.scenario} {self.planner}+{self.tracker}" + (
+            "+filter" if self.safety_filter else ""
+        )
+
+    def build_filter(self):
+        """A fresh safety filter from :data:`~scenarios.closed_loop.roles.FILTERS`, or None
+        with ``safety_filter=False``."""
+        return FILTERS.build(self.filter, self) if self.safety_filter else None
 
     def build(self):
         """``(world, estimator, planner, tracker)``, new objects from the role tables."""

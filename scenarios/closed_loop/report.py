@@ -35,6 +35,7 @@ SUMMARY_COLUMNS = (
     ("timeout_rate", "timeout", "{:.2f}"),
     ("off_road_rate", "off road", "{:.2f}"),
     ("error_rate", "error", "{:.2f}"),
+    ("intervention_rate", "intervention", "{:.3f}"),
     ("min_distance", "min dist (m)", "{:.2f}"),
     ("time_to_clear", "clear (s)", "{:.2f}"),
     ("progress", "progress (m)", "{:.1f}"),
@@ -43,6 +44,12 @@ SUMMARY_COLUMNS = (
     ("plan_p99_ms", "plan p99 (ms)", "{:.1f}"),
     ("rtf", "RTF", "{:.2f}"),
     ("fallbacks", "fallbacks", "{:d}"),
+    ("filter_fallbacks", "filter fallbacks", "{:d}"),
+    ("filter_uncertified", "uncertified", "{:d}"),
+    ("filter_p99_ms", "filter p99 (ms)", "{:.1f}"),
+    ("min_speed", "min speed (m/s)", "{:.2f}"),
+    ("order_switches", "order switches", "{:.1f}"),
+    ("reyields_in_zone", "re-yields in zone", "{:d}"),
 )
 
 
@@ -55,7 +62,11 @@ def _nanmean(values) -> float:
 def summarize(results: Sequence[EpisodeResult], label: str = "") -> dict:
     """One summary row over ``results``: rates of every outcome, means of the metrics
     (over the episodes where a metric is defined), latency percentiles over all steps
-    pooled, the mean real-time factor and the total number of fallbacks."""
+    pooled, the mean real-time factor, the total number of fallbacks, the safety filter's
+    intervention rate (pooled over steps) and fallbacks (:func:`_filter_summary`), the lowest ego speed
+    of all episodes, the mean number of passing-order switches and the total number of
+    steps that re-yielded inside the conflict zone (``n/a`` where no episode defines
+    them)."""
     n = len(results)
     row: dict[str, Any] = {"config": label, "episodes": n}
     for o in OUTCOMES:
@@ -68,7 +79,34 @@ def summarize(results: Sequence[EpisodeResult], label: str = "") -> dict:
     row["plan_p50_ms"] = float(np.percentile(pooled, 50)) if pooled.size else math.nan
     row["plan_p99_ms"] = float(np.percentile(pooled, 99)) if pooled.size else math.nan
     row["fallbacks"] = int(sum(int(m.get("fallbacks", 0) or 0) for m in ms))
+    row.update(_filter_summary(ms))
+    speeds = [m.get("min_speed") for m in ms]
+    speeds = [v for v in speeds if v is not None and math.isfinite(v)]
+    row["min_speed"] = float(min(speeds)) if speeds else math.nan
+    row["order_switches"] = _nanmean(m.get("order_switches") for m in ms)
+    counts = [m.get("reyields_in_zone") for m in ms]
+    counts = [int(c) for c in counts if c is not None and math.isfinite(c)]
+    row["reyields_in_zone"] = int(sum(counts)) if counts else math.nan
     return row
+
+
+def _filter_summary(ms: Sequence[dict]) -> dict:
+    """The safety filter's columns: the intervention rate over all steps pooled (episodes
+    weighted by their steps), the total fallbacks and uncertified fallbacks, and the mean of
+    the episodes' filter p99 (ms); ``n/a`` / 0 when no episode ran a filter."""
+    rated = [
+        m
+        for m in ms
+        if m.get("intervention_rate") is not None and math.isfinite(m["intervention_rate"])
+    ]
+    steps = sum(int(m.get("steps", 0) or 0) for m in rated)
+    hits = sum(float(m["intervention_rate"]) * int(m.get("steps", 0) or 0) for m in rated)
+    return {
+        "intervention_rate": hits / steps if steps else math.nan,
+        "filter_fallbacks": int(sum(int(m.get("filter_fallbacks", 0) or 0) for m in ms)),
+        "filter_uncertified": int(sum(int(m.get("filter_uncertified", 0) or 0) for m in ms)),
+        "filter_p99_ms": _nanmean(m.get("filter_p99_ms") for m in ms),
+    }
 
 
 def _cell(fmt: str, v) -> str:
@@ -114,6 +152,15 @@ EPISODE_COLUMNS = (
     "plan_p99_ms",
     "rtf",
     "fallbacks",
+    "intervention_rate",
+    "filter_fallbacks",
+    "filter_uncertified",
+    "filter_p50_ms",
+    "filter_p99_ms",
+    "min_speed",
+    "reverse_distance",
+    "order_switches",
+    "reyields_in_zone",
     "message",
 )
 

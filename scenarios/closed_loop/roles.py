@@ -11,6 +11,7 @@ planners' torch stack nor anything else it does not run. The built-ins::
                 oracle, cv (solvers.control.plan)
     trackers    pid, mpc (solvers.control.track)
     estimators  ukf (solvers.control.estimate)
+    filters     qp (solvers.control.safety: the safety filter between tracker and world)
 
 A user's own planner is one registration, ``register_planner("mine", factory)`` (a name
 already in the table is refused); ``epo simulate --planner`` offers the table's names. Episodes run in worker processes build their stack there, so a factory used with
@@ -33,9 +34,11 @@ __all__ = [
     "PLANNERS",
     "TRACKERS",
     "ESTIMATORS",
+    "FILTERS",
     "register_planner",
     "register_tracker",
     "register_estimator",
+    "register_filter",
 ]
 
 
@@ -130,6 +133,12 @@ def _ukf(config):
     return UKFEstimator(**config.estimator_options)
 
 
+def _qp_filter(config):
+    from solvers.control.safety import SafetyFilter
+
+    return SafetyFilter(**config.filter_options)
+
+
 #: planners: ``model`` (ours) and ``sc`` are trained runs, built by :mod:`learning.planner`
 PLANNERS = Roles(
     "planner",
@@ -144,6 +153,8 @@ PLANNERS = Roles(
 TRACKERS = Roles("tracker", [("pid", Role(_pid)), ("mpc", Role(_mpc))])
 #: estimators of the other agents' states
 ESTIMATORS = Roles("estimator", [("ukf", Role(_ukf))])
+#: safety filters between the tracker and the world: ``filter(obs, est, plan, command)``
+FILTERS = Roles("filter", [("qp", Role(_qp_filter))])
 
 
 def register_planner(name: str, factory: Callable | str, *, needs_model: bool = False) -> None:
@@ -160,3 +171,10 @@ def register_tracker(name: str, factory: Callable | str) -> None:
 def register_estimator(name: str, factory: Callable | str) -> None:
     """Register an estimator: ``factory(config) -> Estimator``."""
     ESTIMATORS.register(name, factory)
+
+
+def register_filter(name: str, factory: Callable | str) -> None:
+    """Register a safety filter: ``factory(config)`` returns an object with ``reset(world)``
+    and ``filter(obs, est, plan, command) -> Command`` (``plan`` None when the plan was not
+    usable), as :class:`solvers.control.safety.SafetyFilter`."""
+    FILTERS.register(name, factory)

@@ -68,7 +68,8 @@ class EpisodeJob(Scenario):
 
 
 def episode_unit(config, index: int, seed: int, keep_log: bool) -> EpisodeResult:
-    """Build the stack from ``config`` and run episode ``index`` with ``seed``; an exception
+    """Build the stack from ``config`` (and its safety filter, ``config.build_filter()``
+    where the configuration has one) and run episode ``index`` with ``seed``; an exception
     becomes the outcome ``"error"`` with its message (the other episodes go on).
 
     The episode is run by ``scenarios.closed_loop.loop.run_episode``, looked up when
@@ -77,8 +78,10 @@ def episode_unit(config, index: int, seed: int, keep_log: bool) -> EpisodeResult
 
     try:
         world, estimator, planner, tracker = config.build()
+        build_filter = getattr(config, "build_filter", None)
+        safety = build_filter() if callable(build_filter) else None
         return loop.run_episode(
-            world, estimator, planner, tracker, seed, index=index, keep_log=keep_log
+            world, estimator, planner, tracker, seed, index=index, keep_log=keep_log, safety=safety
         )
     except Exception as e:  # noqa: BLE001 - one broken episode must not lose the run
         return EpisodeResult(
@@ -160,6 +163,8 @@ def run_episodes(
         raise SpecError("engine", f"expected 'local' or 'dask', got {engine!r}")
     t0 = time.perf_counter()
     stack = config.build()  # input errors surface here, in one line, before any worker starts
+    if callable(getattr(config, "build_filter", None)):
+        config.build_filter()  # the filter's options too
     pin = getattr(config, "pinned", None)
     if callable(pin):  # a trained planner: every worker must load this very checkpoint
         config = pin(stack[2])

@@ -8,7 +8,8 @@ the figures: ``DIR/figures/episode-00000.png`` (map, trajectories, predicted mod
 A run interrupted and started again with the same options keeps its finished episodes
 (SIGTERM stops it as Ctrl-C does: the worker processes are shut down, exit status 130); a
 rerun with other options, or against a run directory whose model was trained further, is
-refused naming the differing field. ``--workers`` beyond the usable cores is lowered to
+refused naming the differing field. Every command passes the safety filter
+(:mod:`solvers.control.safety`) unless ``--no-safety-filter``. ``--workers`` beyond the usable cores is lowered to
 them (one warning line). When every episode ended in an error the command prints one line
 saying so with the first error and exits with status 1; when some did, one warning line
 (and ``summary.md`` says so too).
@@ -88,8 +89,16 @@ from .dataset_options import capped_workers, cores, engine_options, parse_set
     "overrides",
     multiple=True,
     metavar="KEY=VALUE",
-    help="Option override (repeatable): world.KEY, planner.KEY, tracker.KEY or "
-    "estimator.KEY, e.g. --set planner.horizon=40.",
+    help="Option override (repeatable): world.KEY, planner.KEY, tracker.KEY, "
+    "estimator.KEY or filter.KEY, e.g. --set planner.horizon=40.",
+)
+@click.option(
+    "--safety-filter/--no-safety-filter",
+    "safety_filter",
+    default=True,
+    show_default=True,
+    help="The safety filter between the tracker and the world (solvers.control.safety; "
+    "options: --set filter.KEY=V); --no-safety-filter runs without it (studies).",
 )
 @click.option(
     "--figures/--no-figures",
@@ -113,6 +122,7 @@ def simulate(
     dropout,
     geometry,
     overrides,
+    safety_filter,
     figures,
     progress,
 ):
@@ -156,6 +166,8 @@ def simulate(
         planner_options=groups["planner"],
         tracker_options=groups["tracker"],
         estimator_options=groups["estimator"],
+        safety_filter=safety_filter,
+        filter_options=groups["filter"],
     )
     with sigterm_as_interrupt():  # kill PID stops like Ctrl-C: workers shut down, exit 130
         rep = run_episodes(
@@ -191,13 +203,21 @@ def simulate(
 
 def _option_groups(overrides, noise, dropout, geometry) -> dict[str, dict]:
     """``--set`` and the world's shortcuts (``--noise``, ``--dropout``, ``--geometry``) as
-    options per role: ``{"world": ..., "planner": ..., "tracker": ..., "estimator": ...}``."""
-    groups: dict[str, dict] = {"world": {}, "planner": {}, "tracker": {}, "estimator": {}}
+    options per role: ``{"world": ..., "planner": ..., "tracker": ..., "estimator": ...,
+    "filter": ...}``."""
+    groups: dict[str, dict] = {
+        "world": {},
+        "planner": {},
+        "tracker": {},
+        "estimator": {},
+        "filter": {},
+    }
     for key, value in parse_set(overrides).items():
         head, _, name = key.partition(".")
         if head not in groups or not name:
             raise click.BadParameter(
-                f"expected world.KEY, planner.KEY, tracker.KEY or estimator.KEY, got {key!r}",
+                f"expected world.KEY, planner.KEY, tracker.KEY, estimator.KEY or filter.KEY, "
+                f"got {key!r}",
                 param_hint="'--set'",
             )
         groups[head][name] = value

@@ -23,7 +23,10 @@ from solvers.control.types import Observation, WorldBase
 from ..maps import project_to_polyline
 from .common import circles_overlap
 
-__all__ = ["hw", "HighwayWorld"]
+__all__ = ["hw", "HighwayWorld", "LENGTH", "WIDTH"]
+
+LENGTH = 5.0  # m, highway-env Vehicle.LENGTH: every car of the highway-env worlds
+WIDTH = 2.0  # m, highway-env Vehicle.WIDTH
 
 
 @functools.cache
@@ -94,10 +97,22 @@ class HighwayWorld(WorldBase):
 
     Subclasses provide ``vehicles`` (ego first), ``ego_route``, ``road_map``, ``sensor``,
     ``latch``, ``radii``, ``options`` (``collision``, ``off_road_margin``), ``t``, ``k``
-    and ``max_steps``.
+    and ``max_steps``. Every car is a ``LENGTH x WIDTH`` (5 m x 2 m) rectangle, the
+    world's :attr:`footprint` (what the planners' two circles per car are made from).
+    The ego does not reverse (:meth:`_stop_not_reverse`, the rule of
+    ``VehicleModel(no_reverse=True)``).
     """
 
     vehicles: list
+    footprint = (LENGTH, WIDTH)
+
+    def _stop_not_reverse(self) -> None:
+        """After a step: an ego speed below zero becomes zero. highway-env moves the
+        vehicle with the speed it had before the step, so this is exactly
+        ``VehicleModel(no_reverse=True)``'s step (the ego stops, it does not reverse)."""
+        ego = self.vehicles[0]
+        if ego.speed < 0:
+            ego.speed = 0.0
 
     def truth(self) -> np.ndarray:
         """``(N, 4)`` true ``(x, y, v, theta)`` of every agent, the ego first."""

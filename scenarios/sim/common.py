@@ -19,6 +19,7 @@ __all__ = [
     "check_episode_sizes",
     "check_range",
     "check_sensor",
+    "check_speed_fraction",
     "circles_overlap",
     "ego_interval",
     "gap_decision",
@@ -59,6 +60,26 @@ def check_range(field: str, value, lo=None, hi=None, ordered=True) -> tuple[floa
     if (lo is not None and min(t) < lo) or (hi is not None and max(t) > hi):
         raise SpecError(field, f"expected values in [{lo}, {hi}], got {list(t)}")
     return t
+
+
+def check_speed_fraction(field: str, value) -> tuple[float, float]:
+    """A range of desired speeds as fractions of the speed limit, within ``[0.05, 1]``: the
+    hand-made drivers are IDM vehicles, which never drive faster than their lane's limit, so
+    a fraction above 1 would be a speed the world cannot drive (and a truth the oracle would
+    be told); it is refused naming the field and the limit."""
+    lo, hi = check_range(field, value)
+    if hi > 1.0:
+        raise SpecError(
+            field,
+            f"expected fractions of the speed limit in [0.05, 1.0] (the IDM drivers never drive "
+            f"faster than the limit, so a desired speed above it cannot be honoured), got "
+            f"{[lo, hi]}",
+        )
+    if lo < 0.05:
+        raise SpecError(
+            field, f"expected fractions of the speed limit in [0.05, 1.0], got {[lo, hi]}"
+        )
+    return lo, hi
 
 
 def seeds(seed: int, n: int) -> list[np.random.Generator]:

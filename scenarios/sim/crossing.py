@@ -9,7 +9,8 @@ numerical footing, so this world is ~150 lines of numpy. The geometry is RPI's
 walks across it to a jittered opposite goal; radius 0.25 m each.
 
 Robot: a unicycle ``(x, y, v, theta)``, command ``(a, omega)``, one explicit Euler step of
-``dt`` (:class:`epo_casadi.dynamics.Unicycle`, ``VehicleModel("unicycle")``).
+``dt`` (:class:`epo_casadi.dynamics.Unicycle`, ``VehicleModel("unicycle", no_reverse=True)``:
+it stops rather than reverse, as the pedestrian, stepped by the same model, does).
 
 Pedestrian (hand-made, never the planner under test): a unicycle with a seeded character
 (:class:`~scenarios.sim.common.Character`: aggressiveness ``g``, desired walking speed,
@@ -131,7 +132,7 @@ class CrossingWorld(WorldBase):
         self.dt = float(o.dt)
         self.max_steps = int(o.max_steps)
         self.vehicle = VehicleModel(
-            kind="unicycle", a_min=-_RPI.amax, a_max=_RPI.amax, steer_max=_RPI.wmax
+            kind="unicycle", a_min=-_RPI.amax, a_max=_RPI.amax, steer_max=_RPI.wmax, no_reverse=True
         )
         self.n_agents = 2
         self.radii = np.full(2, float(o.radius))

@@ -14,7 +14,8 @@ so the geometry is a parameter (:class:`Intersection`, :data:`GEOMETRIES`); the 
 sampled, are the world's :class:`scenarios.maps.RoadMap`.
 
 Dynamics. The ego is a highway-env ``Vehicle`` (kinematic bicycle, one step of ``dt`` per
-command ``(a, delta)``: exactly ``VehicleModel.highway().step``). The oncoming vehicle is a
+command ``(a, delta)``, stopping rather than reversing: exactly
+``VehicleModel.highway().step``). The oncoming vehicle is a
 highway-env ``IDMVehicle`` (IDM acceleration, lane-following steering, no lane change)
 whose go / yield decision is ours:
 
@@ -52,12 +53,12 @@ speed (:meth:`LeftTurnWorld.tasks`, the oracle's privilege).
 
 Collisions: ``collision="rectangles"`` (default) is highway-env's crash flag (oriented 5 m x
 2 m rectangles, ``Road.step``); ``"circles"``: the circles of ``radii`` overlap. The
-planners' ``radii`` do not change the rectangle test. Default ``radius`` 1.75 m = (L/2 +
-W/2) / 2: two such circles touch at 3.5 m, the centre distance at which two cars meeting at
-a right angle (the left turn's conflict) touch; with the planners' 1 m margin they keep a
-waiting car (5 m from the route) out of reach. The paper's highway choice r = L / 2 =
-2.5 m (contact at 5 m, nose to tail) made the ego stop inside the zone for a waiting car
-and deadlock. After a crash highway-env brakes the crashed vehicles to a stop.
+world's ``radii`` do not change the rectangle test. The planners model each car as two
+circles made from the world's ``footprint`` (5 m x 2 m, :mod:`solvers.control.plan`), and
+use ``radius`` only without one; ``radius`` (default 1.75 m = (L/2 + W/2) / 2: two such
+circles touch at 3.5 m, the centre distance at which two cars meeting at a right angle
+touch) is the circle of ``collision="circles"``, of the metric ``min_distance`` and of the
+passing order's reach. After a crash highway-env brakes the crashed vehicles to a stop.
 
 Outcome (first terminal one sticks): ``collision``; ``off_road`` when the ego is more than
 ``off_road_margin`` beyond the edge of every lane; ``success`` when it has driven
@@ -80,7 +81,7 @@ from solvers.control.types import AgentTask, Observation
 from solvers.control.vehicle import VehicleModel
 
 from ..maps import ConflictZone, RoadMap, project_to_polyline
-from ._highway import HighwayWorld, hw
+from ._highway import LENGTH, WIDTH, HighwayWorld, hw
 from .common import (
     Character,
     Latch,
@@ -90,6 +91,7 @@ from .common import (
     check_episode_sizes,
     check_range,
     check_sensor,
+    check_speed_fraction,
     ego_interval,
     gap_decision,
     seeds,
@@ -99,8 +101,6 @@ from .common import (
 
 __all__ = ["Intersection", "GEOMETRIES", "LeftTurnOptions", "LeftTurnWorld"]
 
-LENGTH = 5.0  # highway-env Vehicle.LENGTH
-WIDTH = 2.0  # highway-env Vehicle.WIDTH
 #: m, the least distance from a yielding car's centre to the ego's route centre line: half
 #: its length + half the ego's width + 1.5 m, so the ego passes a waiting car with room
 WAIT_CLEARANCE = LENGTH / 2 + WIDTH / 2 + 1.5
@@ -184,7 +184,8 @@ class LeftTurnOptions:
     #: geometry's speed limit
     character: Character | None = None
     margin: tuple[float, float] = (2.0, -1.0)  #: accepted time margin (s) at g = 0 and g = 1
-    radius: float = 1.75  #: circle radius of each vehicle for the planners (m), see below
+    radius: float = 1.75  #: circle radius of each vehicle (m): collision="circles", metrics
+    #: and planners without a footprint (module docstring)
     collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
     goal_distance: float = 15.0  #: success: driven this far along the exit lane (m)
     off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
@@ -210,7 +211,6 @@ class LeftTurnOptions:
             ("ego_speed", 0.0, 30.0),
             ("other_distance", 0.0, None),
             ("aggressiveness", 0.0, 1.0),
-            ("desired_speed", 0.05, 1.0),
             ("reaction", 0.0, 5.0),
             ("margin", -10.0, 10.0),
             ("other_speed", 0.0, 40.0),
@@ -219,6 +219,8 @@ class LeftTurnOptions:
                 continue
             val = check_range(f"{p}.{name}", getattr(self, name), lo, hi, name != "margin")
             object.__setattr__(self, name, val)
+        ds = check_speed_fraction(f"{p}.desired_speed", self.desired_speed)
+        object.__setattr__(self, "desired_speed", ds)
         if self.character is not None and not isinstance(self.character, Character):
             raise SpecError(f"{p}.character", f"expected a Character, got {self.character!r}")
         if self.character is not None:
@@ -435,6 +437,7 @@ class LeftTurnWorld(HighwayWorld):
         acc = self.driver.action.get("acceleration", 0.0)
         self.driver.action["acceleration"] = max(acc, -max(self.driver.speed, 0.0) / self.dt)
         self.road.step(self.dt)
+        self._stop_not_reverse()
         self.t = (self.k + 1) * self.dt
         self.k += 1
         self._check()
@@ -447,13 +450,18 @@ class LeftTurnWorld(HighwayWorld):
         return [self.ego, self.driver]
 
     def tasks(self) -> list[AgentTask]:
+        """The ego's task and the oncoming car's: its lane and the speed it drives when free,
+        its desired speed within its lanes' limit (what IDM targets; a desired speed above
+        the limit is refused when the options are made)."""
         rm = self.road_map
         i = self.lane_i
+        ids = (f"oncoming{i}_approach", f"oncoming{i}_through")
+        limit = min(rm.lane(j).speed_limit for j in ids)
         other = rm.task(
-            (f"oncoming{i}_approach", f"oncoming{i}_through"),
+            ids,
             n_points=self.options.n_path,
             radius=self.options.radius,
-            speed=self.character.desired_speed,
+            speed=min(self.character.desired_speed, limit),
         )
         return [self.ego_task, other]
 

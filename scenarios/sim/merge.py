@@ -52,6 +52,7 @@ from .common import (
     check_episode_sizes,
     check_range,
     check_sensor,
+    check_speed_fraction,
     seeds,
 )
 
@@ -82,7 +83,8 @@ class MergeOptions:
     aggressiveness: tuple[float, float] = (0.0, 1.0)  #: range of the drivers' characters
     #: range, fraction of the speed limit (at most 1: IDM never drives above the limit)
     desired_speed: tuple[float, float] = (0.75, 0.95)
-    radius: float = 2.5  #: circle radius of each vehicle for the planners (m)
+    radius: float = 2.5  #: circle radius of each vehicle (m): collision="circles", metrics;
+    #: the planners use two circles per car from the footprint (5 m x 2 m) instead
     collision: str = "rectangles"  #: "rectangles" (highway-env's crash flag) or "circles"
     goal_distance: float = 40.0  #: success: this far past the end of the merge lane (m)
     off_road_margin: float = 1.0  #: off_road: this far beyond every lane edge (m)
@@ -107,9 +109,10 @@ class MergeOptions:
             ("ego_start", 0.0, self.ramp_length),
             ("ego_speed", 0.0, 40.0),
             ("aggressiveness", 0.0, 1.0),
-            ("desired_speed", 0.05, 1.0),
         ):
             object.__setattr__(self, name, check_range(f"{p}.{name}", getattr(self, name), lo, hi))
+        ds = check_speed_fraction(f"{p}.desired_speed", self.desired_speed)
+        object.__setattr__(self, "desired_speed", ds)
         check_number(f"{p}.spread", self.spread, lo=0.0)
         check_number(f"{p}.radius", self.radius, lo=0.0, lo_open=True)
         if self.collision not in ("rectangles", "circles"):
@@ -258,6 +261,7 @@ class MergeWorld(HighwayWorld):
         self.ego.act({"acceleration": float(u[0]), "steering": float(u[1])})
         self.road.act()
         self.road.step(self.dt)
+        self._stop_not_reverse()
         self.k += 1
         self.t = self.k * self.dt
         self._check()
@@ -277,7 +281,8 @@ class MergeWorld(HighwayWorld):
                     ids,
                     n_points=self.options.n_path,
                     radius=self.options.radius,
-                    speed=c.desired_speed,
+                    # what IDM targets: the desired speed within the lanes' limit
+                    speed=min(c.desired_speed, min(self.road_map.lane(j).speed_limit for j in ids)),
                 )
             )
         return out

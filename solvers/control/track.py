@@ -13,14 +13,24 @@ conditional-integration anti-windup, and the output clipped to the command box a
 
     min  1/2 sum_k |x_k - r_k|^2_{Q_k} + 1/2 sum_k |u_k - ubar_k|^2_R + 1/2 sum_k |u_k - u_{k-1}|^2_S
     s.t. x_{k+1} = A_k x_k + B_k u_k + c_k,  u_min <= u_k <= u_max,
-         |u_k - u_{k-1}| <= rate * dt  (u_{-1}: the command applied last)
+         |u_k - u_{k-1}| <= rate * dt  (u_{-1}: the command applied last),
+         v_k >= min(0, vtop_k)  (k = 1..N: a hard state constraint, the ego never plans to
+                                 reverse; vtop_k, :func:`speed_floor`, the highest speed the
+                                 box and rates reach, below 0 only right after hard braking)
 
 is solved as a sparse QP with OSQP (QP numbers that are not finite or beyond ``1e15`` are
 never handed to it: the call falls back). ``Q_k`` weights the along-track and cross-track position
 errors in the reference's frame (so its values change with the reference heading), the speed
 and the heading. The QP is set up once per :meth:`reset` with a fixed sparsity pattern;
 every step only its numbers change (``update(q, l, u, Px, Ax)``) and the previous solution,
-shifted by one stage, warm-starts it.
+shifted by one stage, warm-starts it. A reference that drives backwards is tracked at
+standstill; an ego already reversing faster than ``a_max dt`` makes the QP infeasible and
+the tracker falls back (braking, which raises the speed towards zero). The command's
+``info["sequence"]`` holds the QP's ``N`` commands (the applied one first), the continuation
+a safety filter (:mod:`solvers.control.safety`) checks.
+
+:meth:`applied` tells a tracker the command the actuators got when a safety filter
+changed it: the rate limits of the next call count from that command.
 
 Reference alignment (both trackers): the plan's states are at ``t0 + dt_p (j + 1)`` and its
 controls act on ``[t0 + dt_p j, t0 + dt_p (j + 1))``; the tracker samples them at
@@ -55,7 +65,15 @@ from epo_casadi.errors import SpecError, check_bool, check_number, check_size
 from .types import Command, Plan
 from .vehicle import VehicleModel
 
-__all__ = ["PIDOptions", "PIDTracker", "MPCOptions", "MPCTracker", "reference", "MAX_HORIZON"]
+__all__ = [
+    "PIDOptions",
+    "PIDTracker",
+    "MPCOptions",
+    "MPCTracker",
+    "reference",
+    "speed_floor",
+    "MAX_HORIZON",
+]
 
 #: most prediction steps of :class:`MPCTracker` (its QP has 6 x horizon unknowns)
 MAX_HORIZON = 1000
@@ -63,6 +81,9 @@ MAX_HORIZON = 1000
 MAX_ITER = 1_000_000
 #: largest magnitude of a QP number handed to OSQP (larger: the ego or plan is out of range)
 _QP_LIMIT = 1e15
+#: the upper bound of a one-sided row (v_k >= 0): OSQP's infinity is 1e30; this is within
+#: _QP_LIMIT and far beyond any speed
+_FREE = 1e15
 
 _log = logging.getLogger(__name__)
 
@@ -133,6 +154,19 @@ def reference(plan: Plan, t: float, dt: float, n: int) -> tuple[np.ndarray, np.n
     return R, ubar
 
 
+def speed_floor(vehicle: VehicleModel, dt: float, n: int, v0: float, a_prev: float) -> np.ndarray:
+    """``(n,)`` lower bounds of the speeds ``v_1..v_n`` in a QP with rate limits: ``0``,
+    or the highest speed the box and the acceleration rate allow from ``v0`` after the
+    command ``a_prev`` where even that is below zero (a car braking hard at a standstill
+    cannot release its brake faster than the rate limit; the vehicle itself stops, the
+    linear model would reverse). Not finite input: zeros."""
+    if not (math.isfinite(v0) and math.isfinite(a_prev)):
+        return np.zeros(n)
+    r = vehicle.rate_bounds(dt)[0]
+    a_top = np.minimum(vehicle.a_max, a_prev + r * np.arange(1, n + 1))
+    return np.minimum(0.0, v0 + dt * np.cumsum(a_top))
+
+
 class _TrackerBase:
     """Shared state: vehicle, period, last command, fallback counter."""
 
@@ -156,6 +190,15 @@ class _TrackerBase:
         self.u_prev = np.zeros(2)
         self.fallbacks = 0
         self.steps = 0
+
+    def applied(self, u: np.ndarray) -> None:
+        """The command the actuators got this period (a safety filter may have changed the
+        tracker's): the rate limits of the next call count from it (two finite numbers;
+        anything else is ignored)."""
+        self._require_reset()
+        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        if u.shape == (2,) and np.all(np.isfinite(u)):
+            self.u_prev = u.copy()
 
     def _brake(self, ego: np.ndarray, reason: str) -> Command:
         """Stop within a step if possible; steering held (see the module docstring)."""
@@ -318,7 +361,7 @@ class MPCTracker(_TrackerBase):
         self.nu, self.nz = 2 * N, 6 * N
         iu = np.arange(2 * N).reshape(N, 2)  # u_k -> columns
         ix = 2 * N + np.arange(4 * N).reshape(N, 4)  # x_{k+1} -> columns (row k: x_{k+1})
-        # ---- constraint matrix: dynamics (4N), box (2N), rates (2N)
+        # ---- constraint matrix: dynamics (4N), box (2N), rates (2N), speeds v_k >= 0 (N)
         r_dyn = np.arange(4 * N).reshape(N, 4)
         I_r, I_c = r_dyn.ravel(), ix.ravel()
         B_r = np.repeat(r_dyn[:, :, None], 2, axis=2).ravel()
@@ -328,10 +371,11 @@ class MPCTracker(_TrackerBase):
         box_r, box_c = 4 * N + np.arange(2 * N), iu.ravel()
         rate_r1, rate_c1 = 6 * N + np.arange(2 * N), iu.ravel()
         rate_r2, rate_c2 = 6 * N + np.arange(2, 2 * N), iu[:-1].ravel()
-        self._A_rows = np.concatenate([I_r, B_r, A_r, box_r, rate_r1, rate_r2])
-        A_cols = np.concatenate([I_c, B_c, A_c, box_c, rate_c1, rate_c2])
+        speed_r, speed_c = 8 * N + np.arange(N), ix[:, 2]
+        self._A_rows = np.concatenate([I_r, B_r, A_r, box_r, rate_r1, rate_r2, speed_r])
+        A_cols = np.concatenate([I_c, B_c, A_c, box_c, rate_c1, rate_c2, speed_c])
         self._A_const = np.concatenate(
-            [np.ones(4 * N), np.ones(2 * N), np.ones(2 * N), -np.ones(2 * N - 2)]
+            [np.ones(4 * N), np.ones(2 * N), np.ones(2 * N), -np.ones(2 * N - 2), np.ones(N)]
         )
         self._nB, self._nA = 8 * N, 16 * (N - 1)
         # ---- cost: Q_k blocks (entries 00, 01, 11, 22, 33) and the U block
@@ -357,7 +401,7 @@ class MPCTracker(_TrackerBase):
         _, A, B = self._linearize(x0, u0)
         Av = self._A_values(A, B)
         Pv = self._P_values(np.zeros(N))
-        self._A, self._A_perm = _csc(self._A_rows, A_cols, Av, (8 * N, 6 * N))
+        self._A, self._A_perm = _csc(self._A_rows, A_cols, Av, (9 * N, 6 * N))
         self._P, self._P_perm = _csc(P_rows, P_cols, Pv, (6 * N, 6 * N))
         self._setup()
         self.last: dict = {}
@@ -409,12 +453,17 @@ class MPCTracker(_TrackerBase):
         Q = np.stack([q00, q01, q11, qv, qt], axis=1).ravel()
         return np.concatenate([Q, self._U_diag, self._U_off])
 
-    def _bounds(self, rhs: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _bounds(
+        self, rhs: np.ndarray, u_prev: np.ndarray, v0: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         N = self.options.horizon
         umin, umax = self.vehicle.bounds()
         r = self.vehicle.rate_bounds(self.dt)
-        lo = np.concatenate([rhs, np.tile(umin, N), u_prev - r, np.tile(-r, N - 1)])
-        hi = np.concatenate([rhs, np.tile(umax, N), u_prev + r, np.tile(r, N - 1)])
+        v_floor = speed_floor(self.vehicle, self.dt, N, v0, u_prev[0])
+        lo = np.concatenate([rhs, np.tile(umin, N), u_prev - r, np.tile(-r, N - 1), v_floor])
+        hi = np.concatenate(
+            [rhs, np.tile(umax, N), u_prev + r, np.tile(r, N - 1), _FREE * np.ones(N)]
+        )
         return lo, hi
 
     # ------------------------------------------------------------------ step
@@ -440,7 +489,7 @@ class MPCTracker(_TrackerBase):
             rhs = c.copy()
             rhs[0] += A[0] @ ego  # x_1 = A_0 x_0 + B_0 u_0 + c_0 with x_0 the ego state
             u_prev = self.u_prev
-            lo, hi = self._bounds(rhs.ravel(), u_prev)
+            lo, hi = self._bounds(rhs.ravel(), u_prev, float(ego[2]))
             Pv = self._P_values(ref[:, 3])
             w = self._stage_w[:, None]
             Qd = np.stack(
@@ -506,10 +555,13 @@ class MPCTracker(_TrackerBase):
         self.last.update(u=U.copy(), x=res.x[2 * N :].reshape(N, 4).copy())
         u = veh.clip(U[0], u_prev, self.dt)  # removes the solver-tolerance excess only
         self.u_prev = u
+        seq = U.copy()
+        seq[0] = u
         info = {
             "status": status,
             "iterations": res.info.iter,
             "timing": timing,
             "u_qp": U[0].copy(),
+            "sequence": seq,  # the QP's commands, the applied one first (a safety filter's continuation)
         }
         return Command(value=u.copy(), info=info)

@@ -28,6 +28,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 __all__ = [
+    "SENSOR_NOISE_STD",
     "AgentTask",
     "Observation",
     "Estimate",
@@ -40,6 +41,12 @@ __all__ = [
     "WorldBase",
     "world_member",
 ]
+
+
+#: m, the default std of the simulated position sensors (``noise_std`` of the left turn and
+#: the merge) and of the UKF's measurement model (``UKFOptions.meas_std``): one number, so
+#: the filter's default matches the worlds' (the crossing's pedestrian sensor is finer)
+SENSOR_NOISE_STD = 0.3
 
 
 @dataclass(frozen=True)
@@ -83,12 +90,18 @@ class Estimate:
     ``H = 18`` in :mod:`scenarios.rpi`); ``valid``: ``(N-1, H+1)`` where the history is backed
     by measurements (not only prediction or the backward extrapolation before a track
     started). An agent not measured yet has ``NaN`` states and covariances.
+    ``converged``: ``(N-1,)`` whether each track may be planned on as it is (the UKF: enough
+    updates and a small position covariance, :class:`~solvers.control.estimate.UKFOptions`);
+    ``None`` (an estimator that does not say) means every finite track has converged. The
+    planners treat a track that has not converged conservatively (constant velocity, an
+    inflated radius, no commitment of the passing order: :mod:`solvers.control.plan`).
     """
 
     states: np.ndarray
     covariances: np.ndarray
     history: np.ndarray
     valid: np.ndarray
+    converged: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -134,7 +147,9 @@ class Estimator(Protocol):
     ``update(obs)`` once per period afterwards, with the same number of rows (``NaN``
     rows while an agent is not observed). Both return an :class:`Estimate` of ``N - 1``
     agents in the unicycle state ``(x, y, v, theta)``. The built-in one is
-    :class:`solvers.control.estimate.UKFEstimator`.
+    :class:`solvers.control.estimate.UKFEstimator`. Optional: ``use_map(road_map)``, called
+    by the loop before ``reset`` with the world's ``road_map`` (or None): the lanes a new
+    track's heading may start from.
     """
 
     def reset(self, obs: Observation, dt: float) -> Estimate: ...
@@ -179,8 +194,10 @@ class World(Protocol):
     gets the same defaults): ``name`` (the registry name, e.g. ``"left-turn"``),
     ``dataset_scenario`` (the dataset scenario whose scenes it plays, manifest
     ``scenario``), ``max_steps``, ``road_map`` (a :class:`scenarios.maps.RoadMap`, for
-    figures), ``horizon`` / ``history`` (the steps a trained planner must predict / read,
-    where the world states them), ``scene_field_names`` (the fields of a dataset scene built
+    figures and the estimator's lane prior), ``footprint`` (``(length, width)`` in m of
+    every agent, all the same, e.g. the cars of the highway-env worlds; None: each agent is
+    the circle of its ``radii`` entry), ``horizon`` / ``history`` (the steps a trained
+    planner must predict / read, where the world states them), ``scene_field_names`` (the fields of a dataset scene built
     from its map, by :func:`scenarios.sim.scene_fields`) and :meth:`conflict_zone`.
     """
 
@@ -193,6 +210,7 @@ class World(Protocol):
     dataset_scenario: str | None
     max_steps: int
     road_map: Any
+    footprint: tuple[float, float] | None
     horizon: int | None
     history: int | None
     scene_field_names: tuple[str, ...]
@@ -226,6 +244,7 @@ class WorldBase:
     dataset_scenario: str | None = None
     max_steps: int = 10**6
     road_map: Any = None
+    footprint: tuple[float, float] | None = None
     horizon: int | None = None
     history: int | None = None
     scene_field_names: tuple[str, ...] = ()
@@ -240,6 +259,7 @@ OPTIONAL_MEMBERS = (
     "dataset_scenario",
     "max_steps",
     "road_map",
+    "footprint",
     "horizon",
     "history",
     "scene_field_names",

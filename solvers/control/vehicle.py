@@ -22,8 +22,22 @@ steering angle inside ``Vehicle.step`` (its action space maps ``[-1, 1]`` onto
 ``[-pi/4, pi/4]``). ``substeps`` Euler steps of ``dt / substeps`` make one step of ``dt``
 (highway-env's ``simulation_frequency / policy_frequency``).
 
+No reversing (``no_reverse=True``, the default of :meth:`VehicleModel.highway`, which every
+world's car uses): a car stops, it does not drive backwards. Before each sub-step of
+``h = dt / substeps`` an acceleration that would take the speed below zero is raised to the
+one that stops the car within the sub-step, ``a' = -v / h`` where ``v + a h < 0`` (applied
+after highway-env's clip), so ``v >= 0`` after every step (a negative speed is brought to
+zero in one step). The worlds apply the same rule to their ego
+vehicle. In the step this is ``v+ = 0 where v + a h < 0, else v + a h`` (the positions
+use the speed at the start of the sub-step, as before), so the speed is exactly zero, never
+a rounding below it. Written with a strict ``<``, the derivative at a standing car with
+``a = 0`` is that of the free model (``d v+ / d a = h``): a linearization at standstill
+can still start the car. ``no_reverse=False`` is the plain model (highway-env's ``Vehicle`` with its
+``MIN_SPEED`` of -40 m/s, a unicycle robot that may reverse).
+
 The limits (``a_min``, ``a_max``, ``steer_max``, ``jerk_max``, ``steer_rate_max``) are what
-the trackers respect; the step itself applies only the speed clip, as the world does.
+the trackers respect; the step itself applies only the speed clip and the no-reversing
+rule, as the world does.
 """
 
 from __future__ import annotations
@@ -68,6 +82,7 @@ class VehicleModel:
     v_min: float = -math.inf  #: highway-env's MIN_SPEED clip (-inf: none)
     v_max: float = math.inf  #: highway-env's MAX_SPEED clip (inf: none)
     substeps: int = 1  #: Euler sub-steps per step
+    no_reverse: bool = False  #: a car: the speed never goes below zero (module docstring)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -89,14 +104,20 @@ class VehicleModel:
         if not self.v_min < self.v_max:
             raise SpecError("vehicle.v_max", f"expected v_max > v_min, got {self.v_max}")
         check_number("vehicle.substeps", self.substeps, lo=1, integer=True)
+        if not isinstance(self.no_reverse, bool):
+            raise SpecError(
+                "vehicle.no_reverse", f"expected true or false, got {self.no_reverse!r}"
+            )
 
     @classmethod
     def highway(cls, **overrides) -> VehicleModel:
         """The bicycle with highway-env 1.12.1's defaults: ``Vehicle.LENGTH = 5``,
         ``MIN/MAX_SPEED = -+40``, ``ContinuousAction`` ranges ``a in [-5, 5]``,
-        ``delta in [-pi/4, pi/4]``."""
+        ``delta in [-pi/4, pi/4]``; and a car that does not reverse (``no_reverse=True``:
+        what the worlds' ego does; ``no_reverse=False`` is highway-env's ``Vehicle`` as it
+        is, which reverses down to -40 m/s)."""
         base = dict(kind="bicycle", length=5.0, a_min=-5.0, a_max=5.0, steer_max=math.pi / 4)
-        base.update(v_min=-40.0, v_max=40.0)
+        base.update(v_min=-40.0, v_max=40.0, no_reverse=True)
         base.update(overrides)
         return cls(**base)
 
@@ -122,19 +143,23 @@ class VehicleModel:
 
     # ------------------------------------------------------------------ the step, once
     def _integrate(self, px, py, v, th, a, s, dt: float, m):
-        """``substeps`` explicit steps of ``dt / substeps`` with the speed clip, written
-        once for numpy arrays and CasADi expressions (``m``: :data:`_NUMPY` / :data:`_CASADI`)."""
+        """``substeps`` explicit steps of ``dt / substeps`` with the speed clip and the
+        no-reversing rule, written once for numpy arrays and CasADi expressions (``m``:
+        :data:`_NUMPY` / :data:`_CASADI`)."""
         h = dt / self.substeps
         for _ in range(self.substeps):  # a fixed, small number of sub-steps (not samples)
             if math.isfinite(self.v_max):
                 a = m.where(v > self.v_max, m.fmin(a, self.v_max - v), a)
             if math.isfinite(self.v_min):
                 a = m.where(v < self.v_min, m.fmax(a, self.v_min - v), a)
+            v_next = v + a * h
+            if self.no_reverse:  # stop within the sub-step rather than reverse
+                v_next = m.where(v_next < 0, 0.0, v_next)
             if self.kind == "unicycle":
                 px, py, v, th = (
                     px + v * m.cos(th) * h,
                     py + v * m.sin(th) * h,
-                    v + a * h,
+                    v_next,
                     th + s * h,
                 )
             else:
@@ -142,7 +167,7 @@ class VehicleModel:
                 px, py, v, th = (
                     px + v * m.cos(th + beta) * h,
                     py + v * m.sin(th + beta) * h,
-                    v + a * h,
+                    v_next,
                     th + v * m.sin(beta) / (self.length / 2) * h,
                 )
         return px, py, v, th
