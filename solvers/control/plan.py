@@ -67,19 +67,22 @@ equilibrium of that order, or of ``"none"``) unless an equilibrium of the other 
 lower by a margin, with hysteresis that leans to the safe side: from "other first" to "ego
 first" only for one lower by ``switch_margin (1 + |E|)`` (0.3: the energies of the two
 orders jump by 20-40 % from one period to the next with the estimate's noise, far more than
-the 2 % margin that used to decide) and at least ``commit_time`` s after the last switch;
-from "ego first" to "other first" (yielding) for one lower by ``yield_margin (1 + |E|)``
-(0.02), at once: a driver who turns out not to yield is given way while the ego can still
-stop. A plan that lets another agent go first stops at the stop line: where its ego would
-pass the line, its accelerations are capped by the constant deceleration that stops it
-there, ``-v^2 / (2 d)`` (``plan.info["stop_line"]``), so a yielding ego does not creep into
-the zone. Once the ego can no longer stop before
-its *stop line* (its front ``stop_gap`` m before ``s_in``) with ``stop_deceleration``, or its
-front is already past it, and until its rear has left the zone, it is committed to going
-first: only equilibria in which it goes first are taken (the lowest-energy one; if no start
-gives one, the plan that progresses furthest), so it never re-yields inside the zone
-(``plan.info["phase"]``: ``"free"``, ``"committed"``, ``"clear"``). Without a conflict zone
-the warm-started equilibrium is kept unless another is lower by ``yield_margin (1 + |E|)``.
+a 2 % margin) and at least ``commit_time`` s after the last switch; from "ego first" to
+"other first" (yielding) for one lower by ``yield_margin (1 + |E|)`` (0.02), at once: a
+driver who turns out not to yield is given way while the ego can still stop. The ego's
+*stop line* (:meth:`GameOracle.stop_line`) keeps its front ``stop_gap`` m before ``s_in``
+(where the centre lines come within 2.5 m), so a waiting ego's nose stays out of the other
+lane. A plan that lets another agent go first stops there: where its ego would pass the
+line, its accelerations are capped by the constant deceleration that stops it at the line,
+``-v^2 / (2 d)`` (``plan.info["stop_line"]``), so a yielding ego does not creep into the
+zone. Once the ego can no longer stop before the line with ``stop_deceleration``, or is past
+it, and until its rear has left the zone, it is committed to going first: only equilibria
+in which it goes first are taken (the lowest-energy one; if no start gives one, its last
+plan shifted by a step, else the plan that progresses furthest with its braking removed,
+``plan.info["no_braking"]``), so it never re-yields inside the zone (``plan.info``:
+``phase`` free / committed / clear, ``order``, ``committed``, ``switched``). Without a
+conflict zone the warm-started equilibrium is kept unless another is lower by
+``yield_margin (1 + |E|)``.
 
 Yielding drivers. The oracle knows each agent's task, but not what the agent does about the
 ego: an agent whose converged estimate is slower than ``stopped_speed`` is predicted by its
@@ -87,7 +90,12 @@ observed state, not by its lane's desired speed (which would predict a car waiti
 ego to drive through it): its own estimated speed is its speed reference and its
 acceleration and turn-rate weights are multiplied by ``hold_weight``, so that in the game it
 stays stopped (or goes as slowly as it goes) rather than drive off to make room for the ego;
-once it moves faster, its desired speed is its reference again.
+once it moves faster, its desired speed is its reference again. An agent braking to yield
+(below half its desired speed, its estimated speed fell by more than 0.5 m/s over the last
+0.5 s of the estimate's history, measured at both ends; held until it speeds up by as much
+or reaches half its desired speed, so the noise of the speed estimate does not toggle it)
+gets 0 as speed reference, with the ordinary weights: it is predicted to stop, not to speed
+up again to its desired speed.
 
 The game is built once per structure (number of agents, footprint, ``dt``, options) and
 cached: a new episode or a new step only changes parameters (initial states, the path
@@ -186,7 +194,7 @@ class PlannerOptions:
     yield_margin: float = 0.02  #: oracle: the same for switching to letting it go first (the
     #: safe direction), and to leave the warm-started equilibrium without a conflict zone
     commit_time: float = 1.0  #: oracle: least time (s) after a switch before going first
-    stop_gap: float = 0.5  #: oracle: m from the ego's stop line (for its centre) to the zone
+    stop_gap: float = 0.5  #: oracle: m from the ego's front at its stop line to the zone
     stop_deceleration: float = 4.0  #: oracle: m/s^2; the ego is committed to going first
     #: once it cannot stop before its stop line with it
     stopped_speed: float = 1.0  #: oracle: m/s; a converged agent slower than this gets its
@@ -358,6 +366,30 @@ def _circles(x, d: float) -> list:
     """The centres of a unicycle state's two circles (symbolic)."""
     u = ca.vertcat(ca.cos(x[3]), ca.sin(x[3]))
     return [x[0:2] + d * u, x[0:2] - d * u]
+
+
+#: s of estimated history over which a speed drop says an agent is braking, and that drop
+#: (m/s): 1 m/s^2 sustained for half a second
+_SLOWING_WINDOW, _SLOWING_DROP = 0.5, 0.5
+
+
+def _speed_change(est, n: int, dt: float) -> np.ndarray:
+    """``(n,)`` each agent's estimated speed now minus ``_SLOWING_WINDOW`` s ago from
+    ``est.history`` (0 where either row is not backed by a measurement, or without such a
+    history)."""
+    out = np.zeros(n)
+    lag = int(round(_SLOWING_WINDOW / dt))
+    try:
+        h = np.asarray(getattr(est, "history", None), dtype=float)
+        valid = np.asarray(getattr(est, "valid", None), dtype=bool)
+    except (TypeError, ValueError):
+        return out
+    if h.ndim != 3 or h.shape[:1] != (n,) or h.shape[1] <= lag or valid.shape != h.shape[:2]:
+        return out
+    with np.errstate(invalid="ignore"):
+        change = h[:, -1, 2] - h[:, -1 - lag, 2]
+    ok = valid[:, -1] & valid[:, -1 - lag] & np.isfinite(change)
+    return np.where(ok, change, 0.0)
 
 
 def _project(points: np.ndarray, line: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -623,6 +655,7 @@ class _GamePlanner:
                 raise _PlanFailure(f"expected an Estimate, got {type(est).__name__}")
             ego = np.asarray(obs.ego, dtype=float).reshape(4)
             others = np.asarray(est.states, dtype=float).reshape(self.game.N - 1, 4).copy()
+            self._speed_change = _speed_change(est, len(others), self.dt)
             if not np.all(np.isfinite(ego)):
                 raise _PlanFailure("the ego state is not finite")
             ego = ego.copy()
@@ -674,6 +707,7 @@ class GameOracle(_GamePlanner):
             raise SpecError("world.tasks", f"expected {self.game.N} tasks, got {len(tasks)}")
         self.tasks = tasks
         self._order: str | None = None  # the committed passing order (commit logic)
+        self._yielding: set[int] = set()  # agents seen braking to yield (params)
         self._switched_at = -math.inf  # when the committed order last changed (s)
 
     def params(self, ego: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -690,12 +724,25 @@ class GameOracle(_GamePlanner):
                 self._set_agent(p, i, state, self._cv_path(state), state[2])
             elif hold:  # it waits: predicted to keep going as slowly as it goes
                 self._set_agent(p, i, state, self._window(task.path, state, state[2]), state[2])
+            elif self._is_yielding(i, state[2], task.speed):  # braking to yield
+                self._set_agent(p, i, state, self._window(task.path, state, 0.0), 0.0)
             else:
                 self._set_agent(p, i, state, self._window(task.path, state, task.speed), task.speed)
             if hold:
                 for j in self._w_cv[i]:
                     p[j] *= o.hold_weight
         return p
+
+    def _is_yielding(self, i: int, speed: float, desired: float) -> bool:
+        """Agent ``i`` is braking to yield (module docstring): set once its speed fell by
+        more than ``_SLOWING_DROP`` over ``_SLOWING_WINDOW`` while below half its desired
+        speed, held until it speeds up by as much or reaches half its desired speed."""
+        change = self._speed_change[i - 1]
+        if speed >= 0.5 * desired or change > _SLOWING_DROP:
+            self._yielding.discard(i)
+        elif change < -_SLOWING_DROP:
+            self._yielding.add(i)
+        return i in self._yielding
 
     def starts(self, ego: np.ndarray) -> np.ndarray:
         """Initial strategies ``(B, n_u)``: the previous solution shifted (if any), then
@@ -716,6 +763,11 @@ class GameOracle(_GamePlanner):
         return np.stack(out)
 
     # ---------------------------------------------------------------- commit logic
+    def stop_line(self) -> float:
+        """Arc length of the ego's stop line along its path: its centre there keeps its front
+        (half its length, or its radius) ``stop_gap`` m before the zone's ``s_in``."""
+        return self.zone[0] - self._front - self.options.stop_gap
+
     def phase(self, ego: np.ndarray) -> str:
         """``"free"`` (it can still stop before its stop line), ``"committed"`` (it cannot,
         or its front is past the line, and its rear has not left the zone) or ``"clear"``
@@ -726,7 +778,7 @@ class GameOracle(_GamePlanner):
         s = float(_project(ego[None, :2], self.ego_task.path)[0][0])
         if s - self._front >= s_out:
             return "clear"
-        stop_line = s_in - self.options.stop_gap
+        stop_line = self.stop_line()
         braking = max(float(ego[2]), 0.0) ** 2 / (2.0 * self.options.stop_deceleration)
         return "committed" if s + braking > stop_line else "free"
 
@@ -737,7 +789,7 @@ class GameOracle(_GamePlanner):
         the line anyway."""
         u, states = cand
         path = self.ego_task.path
-        line = self.zone[0] - self.options.stop_gap
+        line = self.stop_line()
         if _project(states[0, :, :2], path)[0].max() <= line:
             return None
         g = self.game
@@ -860,6 +912,13 @@ class GameOracle(_GamePlanner):
             E = np.append(E, float(g.function("energy")(held[0], p)))
             ok = np.append(ok, bool(np.isfinite(E[-1])))
             best, B = B, B + 1
+        if phase == "committed" and orders[best] == "other":  # nothing goes first: go on
+            parts = g.split_controls(cands[best][0])
+            parts[0] = parts[0].copy()
+            parts[0][:, 0] = np.maximum(parts[0][:, 0], 0.0)  # no braking inside the zone
+            cands[best] = self._no_reverse(g.join_controls(parts), p)
+            orders[best] = self.order(ego, cands[best][1])
+            info["no_braking"] = True
         if phase == "free" and orders[best] == "other":  # yielding: stop at the stop line
             stopped = self._stop_at_line(ego, cands[best], p)
             if stopped is not None:
