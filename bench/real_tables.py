@@ -29,8 +29,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from learning.evaluate import format_mean_std  # noqa: E402
+from scenarios.real.eth_ucy import SCENES  # noqa: E402
 
-SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
 #: method labels of the runs (``learning.evaluate.method_label``) -> table rows, in order
 METHODS = {
     "CV": "CV",

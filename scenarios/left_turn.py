@@ -110,14 +110,13 @@ import numpy as np
 
 from epo_casadi import (
     AgentSpec,
-    Collision,
     GameSpec,
     PotentialGame,
 )
 from epo_casadi.errors import SpecError, check_number, check_size, from_mapping
-from epo_casadi.presets import driving_features
+from epo_casadi.presets import check_weights, driving_agents, driving_game_spec
 
-from .dataset import SPLITS, FieldSpec, Scenario
+from .dataset import SPLITS, FieldSpec, Scenario, stack_rows
 
 __all__ = [
     "LeftTurnRecipe",
@@ -242,9 +241,7 @@ class LeftTurnRecipe:
         for k in ("stop_gap", "lane_behind", "augment_noise"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0)
         check_number(f"{p}.augment_angle", self.augment_angle, lo=0.0, hi=math.pi)
-        for f in fields(self):
-            if f.name.startswith("w_"):
-                check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+        check_weights(p, self)
         shard = min(self.episodes_per_shard, self.episodes_per_geometry * len(self.geometries))
         check_size(
             p,
@@ -616,21 +613,10 @@ class LeftTurnScenario(Scenario):
     # ---- construct hooks ---------------------------------------------------------------
     def agent_specs(self) -> list[AgentSpec]:
         """SDV and oncoming vehicle: App. F.3 CARLA features plus the goal term."""
-        r = self.recipe
-        out = []
-        for name in AGENTS:
-            feats = driving_features(r, lane_points=r.lane_points)
-            out.append(AgentSpec(name, "unicycle", feats, radius=r.radius))
-        return out
+        return driving_agents(self.recipe, AGENTS, lane_points=self.recipe.lane_points)
 
     def game_spec(self) -> GameSpec:
-        r = self.recipe
-        return GameSpec(
-            self.agent_specs(),
-            [Collision(weight=r.w_collision, every=1)],
-            horizon=r.horizon,
-            dt=r.dt,
-        )
+        return driving_game_spec(self.recipe, self.agent_specs())
 
     @cached_property
     def game(self) -> PotentialGame:
@@ -766,11 +752,7 @@ class LeftTurnScenario(Scenario):
             rows.append(s)
             if train:
                 rows.extend({**self.augment(s, aug_rng)} for _ in range(r.augment_copies))
-        schema = self.schema()
-        return {
-            k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
-            for k, fs in schema.items()
-        }
+        return stack_rows(rows, self.schema())
 
 
 def _pre_history(x0: np.ndarray, steps: int, dt: float) -> np.ndarray:

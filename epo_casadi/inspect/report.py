@@ -24,6 +24,20 @@ ENERGY_CONVENTION = (
 REPORT_FORMAT = "epo-inspect/1"
 
 
+def game_sizes(game: PotentialGame) -> dict:
+    """The sizes of ``game`` as JSON facts: ``N``, ``K``, ``dt``, ``n_u``, ``n_x``, ``n_p``,
+    ``n_r`` (the ``sizes`` of the inspect report and of an export's manifest)."""
+    return {
+        "N": game.N,
+        "K": game.K,
+        "dt": game.dt,
+        "n_u": game.n_u,
+        "n_x": game.n_x,
+        "n_p": game.n_p,
+        "n_r": game.n_r,
+    }
+
+
 def param_summary(game: PotentialGame, p: np.ndarray | None = None) -> list[dict]:
     """Every block of the parameter vector: ``name, group, start, size, entries, values``
     (at ``p``; the defaults when ``p`` is None) and ``default``."""
@@ -74,16 +88,7 @@ def inspect_report(
     rep: dict = {
         "format": REPORT_FORMAT,
         "energy_convention": ENERGY_CONVENTION,
-        "sizes": {
-            "N": game.N,
-            "K": game.K,
-            "dt": game.dt,
-            "n_u": game.n_u,
-            "n_x": game.n_x,
-            "n_p": game.n_p,
-            "n_r": game.n_r,
-            "terms": len(game.terms),
-        },
+        "sizes": {**game_sizes(game), "terms": len(game.terms)},
         "agents": list(game.agent_names),
         "dynamics": dynamics_summary(game),
         "params": pv,

@@ -72,8 +72,9 @@ def _apply(options):
 
 
 def engine_options(seed_help: str = "Seed of the whole dataset."):
-    """Workers, seed, engine, scheduler and progress: the options of every command that runs
-    work units on the local-process or Dask engine (generators, ``epo simulate``)."""
+    """Workers, seed, engine, scheduler, progress and scheduler timeout: the options of every
+    command that runs work units on the local-process or Dask engine (generators,
+    ``epo simulate``)."""
     return _apply(
         [
             click.option(
@@ -103,6 +104,13 @@ def engine_options(seed_help: str = "Seed of the whole dataset."):
                 show_default=True,
                 help="tqdm progress bar.",
             ),
+            click.option(
+                "--scheduler-timeout",
+                type=click.FloatRange(min=0, min_open=True, max=3600),
+                default=10.0,
+                show_default=True,
+                help="Seconds to wait for the --scheduler before giving up with an error.",
+            ),
         ]
     )
 
@@ -120,13 +128,6 @@ def dataset_options(set_help: str):
                 help="Output directory (created; resumed if it holds an unfinished run of the same recipe).",
             ),
             engine_options(),
-            click.option(
-                "--scheduler-timeout",
-                type=click.FloatRange(min=0, min_open=True, max=3600),
-                default=10.0,
-                show_default=True,
-                help="Seconds to wait for the --scheduler before giving up with an error.",
-            ),
             click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=set_help),
         ]
     )

@@ -130,6 +130,7 @@ def _complete(path: Path, c_source: bool) -> None:
 
 def _write_export(game, p, stage: Path, fmt: str, functions, name: str) -> dict:
     from epo_casadi.inspect import ENERGY_CONVENTION, param_summary
+    from epo_casadi.inspect.report import game_sizes
     from scenarios.files import write_atomic
 
     funcs = [game.function(n) for n in functions]
@@ -161,15 +162,7 @@ def _write_export(game, p, stage: Path, fmt: str, functions, name: str) -> dict:
         "files": files,
         "build": build,
         "energy_convention": ENERGY_CONVENTION,
-        "sizes": {
-            "N": game.N,
-            "K": game.K,
-            "dt": game.dt,
-            "n_u": game.n_u,
-            "n_x": game.n_x,
-            "n_p": game.n_p,
-            "n_r": game.n_r,
-        },
+        "sizes": game_sizes(game),
         "agents": list(game.agent_names),
         "functions": [
             {

@@ -56,13 +56,6 @@ from .dataset_options import capped_workers, cores, engine_options, parse_set
 )
 @engine_options(seed_help="Episode i uses seed + i.")
 @click.option(
-    "--scheduler-timeout",
-    type=click.FloatRange(min=0, min_open=True, max=3600),
-    default=10.0,
-    show_default=True,
-    help="Seconds to wait for the --scheduler before giving up with an error.",
-)
-@click.option(
     "--out",
     "out",
     required=True,

@@ -89,6 +89,7 @@ from .scenario import (
     assign_splits,
     plan_shards,
     split_sizes,
+    stack_rows,
     unit_seed,
 )
 from .shards import check_shard, fsync_replace, sha256_file, shard_problems, write_shard
@@ -112,6 +113,7 @@ __all__ = [
     "read_manifest",
     "unit_seed",
     "split_sizes",
+    "stack_rows",
     "assign_splits",
     "run_unit",
     "sha256_file",

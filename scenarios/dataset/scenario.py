@@ -116,6 +116,18 @@ class RawScenario(Scenario):
         self.raw = None if raw is None else Path(raw)
 
 
+def stack_rows(rows: Sequence[dict], schema: dict[str, FieldSpec]) -> dict[str, np.ndarray]:
+    """The samples ``(n, ...)`` of a work unit from its ``n`` per-sample dicts: every schema
+    field stacked and cast to the field's dtype (empty arrays of the field's shape when
+    ``rows`` is empty)."""
+    if not rows:
+        return {k: np.zeros((0, *fs.shape), fs.dtype) for k, fs in schema.items()}
+    return {
+        k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
+        for k, fs in schema.items()
+    }
+
+
 def unit_seed(seed: int, index: int) -> np.random.SeedSequence:
     """Seed of work unit ``index``: ``SeedSequence(seed).spawn(2)[1].spawn(n)[index]``."""
     return np.random.SeedSequence(int(seed), spawn_key=(1, int(index)))

@@ -159,7 +159,6 @@ def shard_problems(h, name: str, m: dict, plan: dict | None = None) -> list[tupl
     """
     import h5py
 
-    out: list[tuple[str, str]] = []
     plan = _planned(m).get(name) if plan is None else plan
     attrs = h.attrs
     scen, seed, ident = _text(attrs.get("scenario")), attrs.get("seed"), attrs.get("dataset")
@@ -171,37 +170,35 @@ def shard_problems(h, name: str, m: dict, plan: dict | None = None) -> list[tupl
     elif ident is not None and _text(ident) != dataset_digest(m):
         what = "another recipe than the manifest's"
     if what is not None:
-        out.append(
+        return [
             (
                 name,
                 f"belongs to another dataset ({what}); copy back this dataset's own shard, "
                 "or regenerate it (epo generate with the same options)",
             )
-        )
-        return out
+        ]
     if plan is not None:
         split = _text(attrs.get("split"))
         units = attrs.get("units")
         units = None if units is None else np.asarray(units).reshape(-1).tolist()
         if split is not None and split != plan["split"]:
-            out.append(
+            return [
                 (
                     name,
                     f"holds samples of split {split!r} (units {_short(units, 40)}), but the "
                     f"manifest lists it in split {plan['split']!r}",
                 )
-            )
-            return out
+            ]
         if units is not None and units != plan["units"]:
-            out.append(
+            return [
                 (
                     name,
                     f"holds units {_short(units, 40)}, the manifest plans units "
                     f"{_short(plan['units'], 40)} for it",
                 )
-            )
-            return out
+            ]
     samples = m["shards"].get(name, {}).get("samples")
+    out: list[tuple[str, str]] = []
     for k, v in m["schema"].items():
         shape, dtype = (samples, *v["shape"]), np.dtype(v["dtype"])
         ds = h.get(k)

@@ -5,10 +5,11 @@ from __future__ import annotations
 import hashlib
 import numbers
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path as FilePath
 
 from epo_casadi.errors import SpecError, check_bool, check_number, check_size, from_mapping
+from epo_casadi.presets import check_weights
 
 from .lanelet import find_map
 from .recording import _recording_meta, find_recordings
@@ -101,9 +102,7 @@ class ExidRecipe:
         check_bool(f"{p}.radius_per_agent", self.radius_per_agent)
         for k in ("lane_behind", "goal_near", "goal_margin"):
             check_number(f"{p}.{k}", getattr(self, k), lo=0.0)
-        for f in fields(self):
-            if f.name.startswith("w_"):
-                check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+        check_weights(p, self)
 
     def to_dict(self) -> dict:
         d = asdict(self)

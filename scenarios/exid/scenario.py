@@ -12,14 +12,13 @@ import numpy as np
 
 from epo_casadi import (
     AgentSpec,
-    Collision,
     GameSpec,
     PotentialGame,
 )
 from epo_casadi.errors import SpecError, check_size
-from epo_casadi.presets import driving_features
+from epo_casadi.presets import driving_agents, driving_game_spec
 
-from ..dataset import SPLITS, DatasetError, FieldSpec, RawScenario
+from ..dataset import SPLITS, DatasetError, FieldSpec, RawScenario, stack_rows
 from ..maps import Lane, RoadMap, arc_length, project_to_polyline, resample_at
 from .lanelet import (
     LaneletMap,
@@ -157,24 +156,15 @@ class ExidScenario(RawScenario):
     def agent_specs(self) -> list[AgentSpec]:
         """App. F.3 exiD features plus the goal term, per agent."""
         r = self.recipe
-        out = []
-        for i in range(r.agents):
-            feats = driving_features(r, lane_points=r.lane_points)
-            out.append(
-                AgentSpec(
-                    f"v{i}", "unicycle", feats, radius=r.radius, radius_param=r.radius_per_agent
-                )
-            )
-        return out
+        return driving_agents(
+            r,
+            [f"v{i}" for i in range(r.agents)],
+            lane_points=r.lane_points,
+            radius_param=r.radius_per_agent,
+        )
 
     def game_spec(self) -> GameSpec:
-        r = self.recipe
-        return GameSpec(
-            self.agent_specs(),
-            [Collision(weight=r.w_collision, every=r.collision_every)],
-            horizon=r.horizon,
-            dt=r.dt,
-        )
+        return driving_game_spec(self.recipe, self.agent_specs(), every=self.recipe.collision_every)
 
     @cached_property
     def game(self) -> PotentialGame:
@@ -436,13 +426,7 @@ class ExidScenario(RawScenario):
         self.check_windows(rec, res)
         cache: dict = {}
         rows = [self.cut(res, rec, lmap, sc, cache) for sc in self.scenes(res, lmap)]
-        schema = self.schema()
-        if not rows:
-            return {k: np.zeros((0, *fs.shape), fs.dtype) for k, fs in schema.items()}
-        return {
-            k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
-            for k, fs in schema.items()
-        }
+        return stack_rows(rows, self.schema())
 
 
 def _check_near(lmap: LaneletMap, lid: str, d: float, rec: Recording, tid: int, frame: int):

@@ -3,9 +3,10 @@ crowd game's default weights (:func:`scenarios.real.scenes.crowd_game_spec`)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 from epo_casadi.errors import check_number, check_size, from_mapping
+from epo_casadi.presets import check_weights
 
 __all__ = ["SceneRecipe"]
 
@@ -51,9 +52,7 @@ class SceneRecipe:
         check_number(f"{p}.dt", self.dt, lo=0.01, hi=5.0)
         check_number(f"{p}.max_distance", self.max_distance, lo=0.0, lo_open=True)
         check_number(f"{p}.radius", self.radius, lo=0.0, lo_open=True, hi=100.0)
-        for f in fields(self):
-            if f.name.startswith("w_"):
-                check_number(f"{p}.{f.name}", getattr(self, f.name), lo=0.0)
+        check_weights(p, self)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -62,9 +62,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from epo_casadi import AgentSpec, Collision, GameSpec
+from epo_casadi import GameSpec
 from epo_casadi.errors import SpecError
-from epo_casadi.presets import driving_features
+from epo_casadi.presets import driving_agents, driving_game_spec
 
 from ..dataset import FieldSpec
 
@@ -212,26 +212,24 @@ def window_scenes(
     if not pieces:
         return []
     focal_set = None if focal_ids is None else {int(i) for i in focal_ids}
-    cand_set = None if candidate_ids is None else {int(i) for i in candidate_ids}
     rows = _rows(tracks) if context > 0 else None
     starts = np.array([p.frames[0] for p in pieces], np.int64)
     ends = np.array([p.frames[-1] for p in pieces], np.int64)
     ids = np.array([p.id for p in pieces], np.int64)
+    allowed = (
+        np.ones(ids.size, bool)
+        if candidate_ids is None
+        else np.isin(ids, np.asarray([int(i) for i in candidate_ids], np.int64))
+    )
     out = []
-    for fi, fp in enumerate(pieces):
+    for fp in pieces:
         if focal_set is not None and fp.id not in focal_set:
             continue
         # current frames: the window [t - H s, t + T s] inside the focal piece, every stride
         first, last = fp.frames[0] + H * step, fp.frames[-1] - T * step
         for t in range(int(first), int(last) + 1, stride * step):
             lo, hi = t - H * step, t + T * step
-            cover = (starts <= lo) & (ends >= hi)
-            cover[fi] = False
-            cand = [
-                j
-                for j in np.flatnonzero(cover)
-                if ids[j] != fp.id and (cand_set is None or ids[j] in cand_set)
-            ]
+            cand = np.flatnonzero((starts <= lo) & (ends >= hi) & allowed & (ids != fp.id))
             scene = _cut(fp, [pieces[j] for j in cand], lo, step, H, T, N, dt, max_distance)
             if rows is not None:
                 scene["others"] = _others(rows, scene, fp, lo, step, H + T + 1, int(context))
@@ -398,7 +396,8 @@ def stack_scenes(
     out = {
         "history": np.stack([s["history"] for s in scenes]),
         "history_valid": np.ones((n, H1), bool),
-        "future": np.repeat(gt[:, None], M, axis=1),
+        # cast before the M copies (the same values, M times less to convert)
+        "future": np.repeat(gt.astype(schema["future"].dtype)[:, None], M, axis=1),
         "mode_valid": np.eye(1, M, dtype=bool).repeat(n, axis=0),
         "gt_mode": np.zeros(n, np.int8),
         "agents_mask": mask,
@@ -415,7 +414,7 @@ def stack_scenes(
         out["others"] = np.stack([s["others"] for s in scenes])
     for k, v in (extra or {}).items():
         out[k] = np.full(n, v)
-    return {k: np.asarray(out[k]).astype(fs.dtype) for k, fs in schema.items()}
+    return {k: np.asarray(out[k]).astype(fs.dtype, copy=False) for k, fs in schema.items()}
 
 
 def crowd_game_spec(recipe, names: Sequence[str] | None = None) -> GameSpec:
@@ -426,19 +425,5 @@ def crowd_game_spec(recipe, names: Sequence[str] | None = None) -> GameSpec:
     game parameter (``radius_param``) that models set from the sample's ``radius``;
     ``recipe.radius`` is its default."""
     names = list(names or [f"a{i}" for i in range(recipe.agents)])
-    agents = [
-        AgentSpec(
-            name,
-            "unicycle",
-            driving_features(recipe),
-            radius=recipe.radius,
-            radius_param=True,
-        )
-        for name in names
-    ]
-    return GameSpec(
-        agents,
-        [Collision(weight=recipe.w_collision, every=recipe.collision_every)],
-        horizon=recipe.horizon,
-        dt=recipe.dt,
-    )
+    agents = driving_agents(recipe, names, radius_param=True)
+    return driving_game_spec(recipe, agents, every=recipe.collision_every)

@@ -26,7 +26,7 @@ from epo_casadi import (
 )
 from epo_casadi.errors import SpecError
 
-from ..dataset import FieldSpec, Scenario
+from ..dataset import FieldSpec, Scenario, stack_rows
 from .recipe import RPIRecipe
 
 AGENTS = ("robot", "pedestrian")
@@ -443,10 +443,4 @@ class RPIScenario(Scenario):
         }
 
     def _stack(self, rows: list[dict]) -> dict[str, np.ndarray]:
-        schema = self.schema()
-        if not rows:
-            return {k: np.zeros((0, *fs.shape), fs.dtype) for k, fs in schema.items()}
-        return {
-            k: np.stack([np.asarray(row[k]) for row in rows]).astype(fs.dtype)
-            for k, fs in schema.items()
-        }
+        return stack_rows(rows, self.schema())
