@@ -51,7 +51,14 @@ from epo_casadi.game import PotentialGame
 from .batch import BatchFunction
 from .codegen import cache_dir
 from .lm import MAX_STEPS, check_options
-from .result import SolveResult, Status, demote_nonfinite, potential_equilibrium
+from .result import (
+    SolveResult,
+    Status,
+    demote_nonfinite,
+    grad_inf_norm,
+    padded_histories,
+    potential_equilibrium,
+)
 
 __all__ = ["IpoptOptions", "IpoptSolver", "solve_ipopt", "ipopt_status"]
 
@@ -86,6 +93,24 @@ def _bound_value(v, where: str, default: float) -> float:
     ):
         raise SpecError(where, f"expected a number, inf or None, got {short_repr(v)}")
     return float(v)
+
+
+def agent_bounds(game: PotentialGame, bounds: Bounds | None, sizes, where: str):
+    """``(agent index, lower, upper)`` of each entry of ``bounds`` (normalized by
+    :func:`_normalize_bounds`), checked against the game: a known agent name and
+    ``sizes[i]`` entries per list (``game.nu`` or ``game.nx``); ``where`` names the field
+    in the errors."""
+    names = game.agent_names
+    for name, lo, hi in bounds or ():
+        at = f"{where}[{name!r}]"
+        if name not in names:
+            raise SpecError(at, f"unknown agent; expected one of {names}")
+        i = names.index(name)
+        if len(lo) != sizes[i]:
+            raise SpecError(
+                at, f"expected {sizes[i]} entries per list for agent {name!r}, got {len(lo)}"
+            )
+        yield i, np.asarray(lo, float), np.asarray(hi, float)
 
 
 def _normalize_bounds(value, where: str) -> Bounds | None:
@@ -208,14 +233,14 @@ class IpoptSolver:
         # control bounds -> lbx / ubx (K copies of the per-agent bounds)
         self.lbx = np.full(game.n_u, -np.inf)
         self.ubx = np.full(game.n_u, np.inf)
-        for i, lo, hi in self._bounds(opts.control_bounds, game.nu, "control_bounds"):
+        for i, lo, hi in agent_bounds(game, opts.control_bounds, game.nu, "ipopt.control_bounds"):
             sl = slice(int(game.uoff[i]), int(game.uoff[i + 1]))
             self.lbx[sl] = np.tile(lo, game.K)
             self.ubx[sl] = np.tile(hi, game.K)
 
         # state bounds -> g = the bounded entries of the rolled-out states, k = 1..K
         rows, lbg, ubg = [], [], []
-        for i, lo, hi in self._bounds(opts.state_bounds, game.nx, "state_bounds"):
+        for i, lo, hi in agent_bounds(game, opts.state_bounds, game.nx, "ipopt.state_bounds"):
             for k in range(1, game.K + 1):
                 for c in range(game.nx[i]):
                     if np.isfinite(lo[c]) or np.isfinite(hi[c]):
@@ -253,19 +278,6 @@ class IpoptSolver:
         #: "rebuilt" (a cache file was unreadable or corrupted and was replaced)
         self.setup_s = time.perf_counter() - t0
         self.setup_cpu_s = time.process_time() - c0
-
-    def _bounds(self, bounds: Bounds | None, sizes: list[int], field: str):
-        names = self.game.agent_names
-        for name, lo, hi in bounds or ():
-            where = f"ipopt.{field}[{name!r}]"
-            if name not in names:
-                raise SpecError(where, f"unknown agent; expected one of {names}")
-            i = names.index(name)
-            if len(lo) != sizes[i]:
-                raise SpecError(
-                    where, f"expected {sizes[i]} entries per list for agent {name!r}, got {len(lo)}"
-                )
-            yield i, np.asarray(lo, float), np.asarray(hi, float)
 
     def _solve_one(self, u0: np.ndarray, p: np.ndarray) -> dict:
         try:
@@ -316,12 +328,6 @@ class IpoptSolver:
         for b, r in enumerate(runs):
             status[b] = ipopt_status(r["return_status"])
         status = demote_nonfinite(status, E[:, None], X, C, U)
-        S = max(len(r["history"]) for r in runs)
-        S = max(S, 1)
-        hist = np.empty((S, len(runs)))
-        for b, r in enumerate(runs):
-            h = list(r["history"]) or [E[b]]
-            hist[:, b] = h + [h[-1]] * (S - len(h))
         viol = (
             np.maximum(np.maximum(self.lbx - U, U - self.ubx), 0.0).max(axis=1)
             if game.n_u
@@ -340,8 +346,8 @@ class IpoptSolver:
             agent_costs=C,
             status=status,
             iterations=np.array([r["iter"] for r in runs], dtype=int),
-            energy_history=hist,
-            grad_norm=np.max(np.abs(G), axis=1) if game.n_u else np.zeros(len(runs)),
+            energy_history=padded_histories([r["history"] for r in runs], E),
+            grad_norm=grad_inf_norm(G),
             wall_time=time.perf_counter() - t0,
             info={
                 "return_status": np.array([r["return_status"] for r in runs], dtype=object),

@@ -40,7 +40,15 @@ from epo_casadi.game import PotentialGame
 
 from .batch import BatchFunction
 from .gn import DenseGN, Linearization  # the shared backend piece, one level down
-from .result import SolveResult, Status, StopReason, demote_nonfinite, potential_equilibrium
+from .result import (
+    SolveResult,
+    Status,
+    StopReason,
+    demote_nonfinite,
+    grad_inf_norm,
+    mark_nonfinite_stops,
+    potential_equilibrium,
+)
 
 __all__ = ["LMOptions", "DenseGN", "Linearization", "solve_lm", "check_options", "MAX_STEPS"]
 
@@ -347,9 +355,7 @@ def _lm_result(s: _LMState, game: PotentialGame, opts: LMOptions, cos, wall) -> 
     X = _rollout(game, U, P, opts.threads)
     C = batch_function(game, "agent_costs", opts.threads)(U, P)[0]
     status = demote_nonfinite(s.status, E[:, None], X, C)
-    stop = s.stop
-    stop[(status == Status.NONFINITE) & (stop != StopReason.NONFINITE)] = StopReason.NONFINITE
-    B = U.shape[0]
+    mark_nonfinite_stops(status, s.stop)
     return SolveResult(
         solver="lm",
         controls=U,
@@ -359,12 +365,12 @@ def _lm_result(s: _LMState, game: PotentialGame, opts: LMOptions, cos, wall) -> 
         status=status,
         iterations=s.iters,
         energy_history=np.stack(s.hist),
-        grad_norm=np.max(np.abs(s.lin.gradient), axis=1) if game.n_u else np.zeros(B),
+        grad_norm=grad_inf_norm(s.lin.gradient),
         wall_time=wall,
         info={
             "damping": s.lam,
             "damping_history": np.stack(s.lam_hist),
-            "stop": stop,
+            "stop": s.stop,
             "residual_cosine": cos,
             "options": opts,
         },

@@ -116,7 +116,17 @@ from epo_casadi.errors import SpecError, check_bool, check_number, from_mapping,
 from epo_casadi.game import PotentialGame
 
 from .lm import MAX_STEPS, LMOptions, prepare_lm
-from .result import Equilibrium, SolveResult, Status, StopReason, demote_nonfinite
+from .result import (
+    Equilibrium,
+    SolveResult,
+    Status,
+    StopReason,
+    demote_nonfinite,
+    grad_inf_norm,
+    mark_nonfinite_stops,
+    padded_histories,
+    per_problem,
+)
 
 __all__ = ["OLNEOptions", "OLNESolver", "solve_olne", "game_jacobian"]
 
@@ -485,13 +495,7 @@ class OLNESolver:
         status = np.empty(B, dtype=object)
         status[:] = [r["status"] for r in runs]
         status = demote_nonfinite(status, E[:, None], X, C, U)
-        stop = np.array([r["stop"] for r in runs], dtype=object)
-        stop[(status == Status.NONFINITE) & (stop != StopReason.NONFINITE)] = StopReason.NONFINITE
-        S = max(len(r["energy"]) for r in runs)
-        hist = np.empty((S, B))
-        for b, r in enumerate(runs):
-            h = r["energy"]
-            hist[:, b] = h + [h[-1]] * (S - len(h))
+        stop = mark_nonfinite_stops(status, np.array([r["stop"] for r in runs], dtype=object))
         eig = np.stack([r["eig"] for r in runs])
         second = np.array([_psd(r["eig"], r["eig_scale"]) for r in runs], dtype=bool)
         res = SolveResult(
@@ -502,15 +506,15 @@ class OLNESolver:
             agent_costs=C,
             status=status,
             iterations=np.array([r["iter"] for r in runs], dtype=int),
-            energy_history=hist,
-            grad_norm=np.max(np.abs(G), axis=1) if g.n_u else np.zeros(B),
+            energy_history=padded_histories([r["energy"] for r in runs], E),
+            grad_norm=grad_inf_norm(G),
             wall_time=wall,
             info={
                 "stop": stop,
                 "stationarity": np.array([r["stationarity"][-1] for r in runs]),
-                "stationarity_history": _per_problem(runs, "stationarity"),
-                "step_sizes": _per_problem(runs, "steps"),
-                "damping_history": _per_problem(runs, "damping"),
+                "stationarity_history": per_problem(runs, "stationarity"),
+                "step_sizes": per_problem(runs, "steps"),
+                "damping_history": per_problem(runs, "damping"),
                 "saddle_escapes": np.array([r["escapes"] for r in runs], dtype=int),
                 "jacobian": o.jacobian,
                 "options": o,
@@ -546,13 +550,6 @@ def _psd(low: np.ndarray, big: np.ndarray) -> bool:
     """Every own-Hessian block positive semidefinite within :data:`SECOND_ORDER_TOL`."""
     with np.errstate(invalid="ignore"):
         return bool(np.all(np.isfinite(big) & (low >= -SECOND_ORDER_TOL * (1.0 + big))))
-
-
-def _per_problem(runs: list[dict], key: str) -> np.ndarray:
-    out = np.empty(len(runs), dtype=object)
-    for b, r in enumerate(runs):
-        out[b] = np.asarray(r[key], dtype=float)
-    return out
 
 
 def _options(options) -> OLNEOptions:

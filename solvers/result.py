@@ -27,6 +27,10 @@ __all__ = [
     "SolveResult",
     "fmt_number",
     "demote_nonfinite",
+    "mark_nonfinite_stops",
+    "padded_histories",
+    "grad_inf_norm",
+    "per_problem",
 ]
 
 
@@ -50,7 +54,15 @@ class Status(enum.Enum):
         return self in (Status.CONVERGED, Status.MAX_ITER)
 
 
-class StopReason(str, enum.Enum):
+class _Word(str, enum.Enum):
+    """A ``str`` enum whose members equal, hash, print and format as their value."""
+
+    __hash__ = str.__hash__
+    __str__ = str.__str__
+    __format__ = str.__format__
+
+
+class StopReason(_Word):
     """Why a solver stopped (``info["stop"]``), beside its :class:`Status`.
 
     A ``str``: a member equals, hashes, prints and is written to JSON as its value
@@ -90,12 +102,8 @@ class StopReason(str, enum.Enum):
     #: SQP: the QP's step is negligible (``step_tol``).
     STEP_TOL = "step_tol"
 
-    __hash__ = str.__hash__
-    __str__ = str.__str__
-    __format__ = str.__format__
 
-
-class Equilibrium(str, enum.Enum):
+class Equilibrium(_Word):
     """The kind of point a solve looks for (``SolveResult.equilibrium``), beside its
     :class:`Status`.
 
@@ -113,10 +121,6 @@ class Equilibrium(str, enum.Enum):
     POTENTIAL_MINIMUM = "potential minimum (coupled dynamics: not a Nash equilibrium)"
     #: iLQ: a local feedback Nash equilibrium of the players' own costs (coupled or not)
     FEEDBACK = "feedback Nash"
-
-    __hash__ = str.__hash__
-    __str__ = str.__str__
-    __format__ = str.__format__
 
     @property
     def message(self) -> str:
@@ -141,7 +145,7 @@ def potential_equilibrium(coupled: bool) -> Equilibrium:
     return Equilibrium.POTENTIAL_MINIMUM if coupled else Equilibrium.OPEN_LOOP
 
 
-class Verdict(str, enum.Enum):
+class Verdict(_Word):
     """An equilibrium check's answer, per agent and overall (a ``str``, written as its word).
 
     ``fails`` only on evidence (an improvement that a best response or a deviation found,
@@ -152,10 +156,6 @@ class Verdict(str, enum.Enum):
     PASSES = "passes"
     FAILS = "fails"
     UNKNOWN = "unknown"
-
-    __hash__ = str.__hash__
-    __str__ = str.__str__
-    __format__ = str.__format__
 
 
 def combine_verdicts(verdicts) -> Verdict:
@@ -217,6 +217,38 @@ def demote_nonfinite(status: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
     soft = np.array([s in (Status.CONVERGED, Status.MAX_ITER, Status.STALLED) for s in status])
     out = np.array(status, dtype=object)
     out[bad & soft] = Status.NONFINITE
+    return out
+
+
+def mark_nonfinite_stops(status: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """``stop`` (``(B,)`` objects, changed in place and returned) with
+    :attr:`StopReason.NONFINITE` wherever ``status`` is ``NONFINITE`` (after
+    :func:`demote_nonfinite`)."""
+    stop[(status == Status.NONFINITE) & (stop != StopReason.NONFINITE)] = StopReason.NONFINITE
+    return stop
+
+
+def padded_histories(histories, last: np.ndarray) -> np.ndarray:
+    """``(S, B)``: the per-problem histories (``B`` sequences) as columns, each padded to
+    the longest with its final value; an empty one is ``[last[b]]``; ``S >= 1``."""
+    cols = [list(h) or [last[b]] for b, h in enumerate(histories)]
+    S = max((len(h) for h in cols), default=1)
+    hist = np.empty((S, len(cols)))
+    for b, h in enumerate(cols):
+        hist[:, b] = h + [h[-1]] * (S - len(h))
+    return hist
+
+
+def grad_inf_norm(G: np.ndarray) -> np.ndarray:
+    """``(B,)`` infinity norms of the rows of ``G`` ``(B, n_u)`` (zeros when ``n_u = 0``)."""
+    return np.max(np.abs(G), axis=1) if G.shape[1] else np.zeros(G.shape[0])
+
+
+def per_problem(runs: list[dict], key: str) -> np.ndarray:
+    """``(B,)`` object array of the float arrays ``run[key]`` (``result[b]`` picks one)."""
+    out = np.empty(len(runs), dtype=object)
+    for b, r in enumerate(runs):
+        out[b] = np.asarray(r[key], dtype=float)
     return out
 
 

@@ -129,7 +129,7 @@ import scipy.sparse as sp
 
 from epo_casadi.errors import SpecError, check_bool, check_number, check_size
 
-from .track import _csc, _options, reference, speed_floor
+from .track import _csc, _options, reference, speed_floor, world_vehicle
 from .types import Command, Plan, world_member
 from .vehicle import VehicleModel
 
@@ -411,13 +411,8 @@ class SafetyFilter:
     # ------------------------------------------------------------------ set-up
     def reset(self, world) -> None:
         """Read the vehicle, period, footprints and the ego's path; clear the counters."""
-        vehicle, dt = getattr(world, "vehicle", None), getattr(world, "dt", None)
-        if not isinstance(vehicle, VehicleModel):
-            raise SpecError(
-                "world.vehicle", f"expected a VehicleModel, got {type(vehicle).__name__}"
-            )
-        check_number("world.dt", dt, lo=0, lo_open=True)
-        self.vehicle, self.dt = vehicle, float(dt)
+        vehicle, dt = world_vehicle(world)
+        self.vehicle, self.dt = vehicle, dt
         self.ego_points, self.ego_radius, self.shapes = body_shapes(world, self.options.shape)
         self._np = min(len(self.ego_points), 2)  # QP rows per pair: the nearest two points
         self.n_others = int(world.n_agents) - 1

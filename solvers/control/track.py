@@ -72,6 +72,7 @@ __all__ = [
     "MPCTracker",
     "reference",
     "speed_floor",
+    "world_vehicle",
     "MAX_HORIZON",
 ]
 
@@ -135,6 +136,16 @@ def _input_problem(ego: np.ndarray, plan: Plan, t) -> str | None:
     return reason
 
 
+def world_vehicle(world) -> tuple[VehicleModel, float]:
+    """The world's ego ``vehicle`` (a :class:`VehicleModel`) and its period ``dt`` (> 0),
+    checked (:class:`~epo_casadi.errors.SpecError` naming the member)."""
+    vehicle, dt = getattr(world, "vehicle", None), getattr(world, "dt", None)
+    if not isinstance(vehicle, VehicleModel):
+        raise SpecError("world.vehicle", f"expected a VehicleModel, got {type(vehicle).__name__}")
+    check_number("world.dt", dt, lo=0, lo_open=True)
+    return vehicle, float(dt)
+
+
 def reference(plan: Plan, t: float, dt: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     """The plan sampled for a tracker at time ``t``: states ``(n + 1, 4)`` at ``t + dt k``,
     ``k = 0..n``, and nominal unicycle controls ``(n, 2)`` on ``[t + dt k, t + dt (k+1))``
@@ -180,13 +191,7 @@ class _TrackerBase:
             )
 
     def _reset_common(self, world) -> None:
-        vehicle, dt = getattr(world, "vehicle", None), getattr(world, "dt", None)
-        if not isinstance(vehicle, VehicleModel):
-            raise SpecError(
-                "world.vehicle", f"expected a VehicleModel, got {type(vehicle).__name__}"
-            )
-        check_number("world.dt", dt, lo=0, lo_open=True)
-        self.vehicle, self.dt = vehicle, float(dt)
+        self.vehicle, self.dt = world_vehicle(world)
         self.u_prev = np.zeros(2)
         self.fallbacks = 0
         self.steps = 0

@@ -21,6 +21,8 @@ from epo_casadi.errors import SpecError
 from epo_casadi.features import smooth_distance
 from epo_casadi.game import PotentialGame
 
+from ..codegen import BufferCall
+from ..ipopt import agent_bounds
 from ..lm import check_options
 from .options import SQPOptions
 
@@ -32,18 +34,8 @@ _INF = 1e30  # OSQP's infinity (OSQP_INFTY)
 
 def _bound_rows(game: PotentialGame, bounds, sizes, offsets, per_stage, first, field):
     """(flat indices, lower, upper) of the bounded entries, every stage from ``first``."""
-    names = game.agent_names
     idx, lo_all, hi_all = [], [], []
-    for name, lo, hi in bounds or ():
-        where = f"sqp.{field}[{name!r}]"
-        if name not in names:
-            raise SpecError(where, f"unknown agent; expected one of {names}")
-        i = names.index(name)
-        if len(lo) != sizes[i]:
-            raise SpecError(
-                where, f"expected {sizes[i]} entries per list for agent {name!r}, got {len(lo)}"
-            )
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    for i, lo, hi in agent_bounds(game, bounds, sizes, f"sqp.{field}"):
         comp = np.flatnonzero(np.isfinite(lo) | np.isfinite(hi))
         for k in range(first, per_stage):
             idx.append(int(offsets[i]) + k * sizes[i] + comp)
@@ -52,29 +44,6 @@ def _bound_rows(game: PotentialGame, bounds, sizes, offsets, per_stage, first, f
     if not idx:
         return np.zeros(0, int), np.zeros(0), np.zeros(0)
     return np.concatenate(idx), np.concatenate(lo_all), np.concatenate(hi_all)
-
-
-class _Buffered:
-    """A ``casadi.Function`` called on numpy arrays through its buffer interface; every
-    output comes back as its nonzeros (the order of its CSC sparsity)."""
-
-    def __init__(self, f: ca.Function):
-        self.f = f
-        self.buf, self.ev = f.buffer()
-        self.outs = [np.empty(f.nnz_out(i)) for i in range(f.n_out())]
-        for i, o in enumerate(self.outs):
-            self.buf.set_res(i, memoryview(o))
-        self._ins: list = [None] * f.n_in()
-
-    def __call__(self, *args) -> list[np.ndarray]:
-        for i, a in enumerate(args):
-            a = np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
-            if a.size != self.f.nnz_in(i):
-                raise ValueError(f"{self.f.name()}: input {i} needs {self.f.nnz_in(i)} numbers")
-            self._ins[i] = a  # kept alive while CasADi reads it
-            self.buf.set_arg(i, memoryview(a))
-        self.ev()
-        return self.outs
 
 
 def _csc(sp: ca.Sparsity, shape) -> sps.csc_matrix:
@@ -191,7 +160,7 @@ class StagedQP:
         u_g, p_g = game.symbols["u"], game.symbols["p"]
         sub = ca.Function("sub", args, outs)
         P_r, q_r, A_r, E_r, r_r, d_r, _ = sub(xr, u_g, p_g, args[3])
-        self._lin = _Buffered(
+        self._lin = BufferCall(
             ca.Function(
                 "sqp_qp",
                 [u_g, p_g, args[3]],
@@ -200,7 +169,7 @@ class StagedQP:
                 ["P", "q", "A", "E", "x", "dist"],
             )
         )
-        self._merit = _Buffered(
+        self._merit = BufferCall(
             ca.Function(
                 "sqp_merit",
                 [u_g, p_g],

@@ -11,7 +11,14 @@ from epo_casadi.errors import SpecError
 from epo_casadi.game import PotentialGame
 
 from ..lm import check_options
-from ..result import SolveResult, demote_nonfinite, potential_equilibrium
+from ..result import (
+    SolveResult,
+    demote_nonfinite,
+    grad_inf_norm,
+    padded_histories,
+    per_problem,
+    potential_equilibrium,
+)
 from .iteration import SQPRun
 from .options import SQPOptions
 from .qp import StagedQP
@@ -86,11 +93,6 @@ def _stack(game: PotentialGame, runs: list[dict], wall: float, opts: SQPOptions)
     status = np.empty(B, dtype=object)
     status[:] = [r["status"] for r in runs]
     status = demote_nonfinite(status, E[:, None], X, C, U)
-    S = max(max(len(r["history"]) for r in runs), 1)
-    hist = np.empty((S, B))
-    for b, r in enumerate(runs):
-        h = list(r["history"]) or [E[b]]
-        hist[:, b] = h + [h[-1]] * (S - len(h))
     kkt = {k: np.array([r["kkt"][k] for r in runs]) for k in runs[0]["kkt"]}
     return SolveResult(
         solver="sqp",
@@ -100,8 +102,8 @@ def _stack(game: PotentialGame, runs: list[dict], wall: float, opts: SQPOptions)
         agent_costs=C,
         status=status,
         iterations=np.array([r["iter"] for r in runs], dtype=int),
-        energy_history=hist,
-        grad_norm=np.max(np.abs(G), axis=1) if game.n_u else np.zeros(B),
+        energy_history=padded_histories([r["history"] for r in runs], E),
+        grad_norm=grad_inf_norm(G),
         wall_time=wall,
         info={
             "stop": np.array([r["stop"] for r in runs], dtype=object),
@@ -109,25 +111,17 @@ def _stack(game: PotentialGame, runs: list[dict], wall: float, opts: SQPOptions)
             "kkt_stationarity": kkt["stationarity"],
             "max_violation": kkt["violation"],
             "kkt_complementarity": kkt["complementarity"],
-            "kkt_history": _per_problem(runs, "kkt_history"),
-            "step_sizes": _per_problem(runs, "step_sizes"),
-            "qp_iterations": _per_problem(runs, "qp_iterations"),
-            "qp_polish": _per_problem(runs, "polish"),
-            "regularization_history": _per_problem(runs, "mu"),
+            "kkt_history": per_problem(runs, "kkt_history"),
+            "step_sizes": per_problem(runs, "step_sizes"),
+            "qp_iterations": per_problem(runs, "qp_iterations"),
+            "qp_polish": per_problem(runs, "polish"),
+            "regularization_history": per_problem(runs, "mu"),
             "merit_penalty": np.array([r["merit_penalty"] for r in runs]),
             "multipliers": np.stack([r["y"] for r in runs]),
             "options": opts,
         },
         equilibrium=potential_equilibrium(game.coupled),
     )
-
-
-def _per_problem(runs: list[dict], key: str) -> np.ndarray:
-    """``(B,)`` object array of per-problem arrays (``result[b]`` picks one)."""
-    out = np.empty(len(runs), dtype=object)
-    for b, r in enumerate(runs):
-        out[b] = np.asarray(r[key], dtype=float)
-    return out
 
 
 def _solver_for(game: PotentialGame, opts: SQPOptions) -> SQPSolver:
