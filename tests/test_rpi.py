@@ -299,3 +299,19 @@ def test_ground_truth_keeps_the_agents_apart(tiny, unit):
     gt = unit["future"][np.arange(len(unit["gt_mode"])), unit["gt_mode"]]
     dist = np.linalg.norm(gt[:, 0, :, :2] - gt[:, 1, :, :2], axis=-1)
     assert dist.min() >= 2 * tiny.recipe.radius
+
+
+def test_model_game_reach_follows_the_ground_truth():
+    """The model game's collision term acts where the demonstrations' interaction does: with
+    the Peters ground truth, up to its proximity radius (1.5 m = 2 * 0.25 m + 1.0 m)."""
+    peters = RPIRecipe(ground_truth="peters")
+    assert peters.proximity_radius == 1.5 and peters.radius == 0.25
+    assert peters.collision_margin == pytest.approx(1.0, abs=1e-15)
+    assert RPIRecipe(ground_truth="potential").collision_margin == 0.15
+    assert RPIRecipe(ground_truth="peters", collision_margin=0.15).collision_margin == 0.15
+    assert RPIRecipe(ground_truth="peters", proximity_radius=0.5).collision_margin == 0.0
+    assert RPIRecipe.from_dict(peters.to_dict()) == peters
+    (col,) = RPIScenario(peters).game_spec().pair_features
+    assert col.margin == pytest.approx(1.0, abs=1e-15)
+    with pytest.raises(SpecError, match="rpi.collision_margin"):
+        RPIRecipe(ground_truth="potential", collision_margin=-0.1)

@@ -63,7 +63,12 @@ GROUND_TRUTHS = ("peters", "potential")
 #: defaults of the fields that depend on the ground truth (``None`` in the dataclass)
 _TRUTH_DEFAULTS: dict[str, dict[str, Any]] = {
     "potential": dict(
-        main_games=2000, speed0=(1.0, 1.0), goal_jitter=30.0, n_samples=8, max_iter=30
+        main_games=2000,
+        speed0=(1.0, 1.0),
+        goal_jitter=30.0,
+        n_samples=8,
+        max_iter=30,
+        collision_margin=0.15,
     ),
     "peters": dict(
         main_games=math.ceil(PAPER_SAMPLES / SAMPLES_PER_GAME_BY_TRUTH["peters"]),
@@ -128,7 +133,11 @@ class RPIRecipe:
     w_turn: float = 1.0  #: turn-rate weight
     w_bound: float = 5.0  #: weight of every soft bound
     collision_weight: tuple[float, float] = (5.0, 30.0)  #: U(lo, hi) per main game
-    collision_margin: float = 0.15  #: safety distance (m) added to 2 r: the soft penalty then keeps the agents >= 2 r apart
+    #: distance (m) added to 2 r within which the model game's collision term acts; None: the
+    #: ground truth's reach, 0.15 for "potential" (the soft penalty keeps the agents >= 2 r
+    #: apart) and ``proximity_radius - 2 r`` for "peters" (the term acts wherever the
+    #: demonstrations' proximity cost does)
+    collision_margin: float | None = None
     solver: str = "ilq"  #: multimodal engine: "ilq" or "lm"
     n_samples: int | None = None  #: solves per main game (potential: and subgame); 8 / 100
     warm_start: int = 2  #: of those, initial strategies from the previous subgame's modes
@@ -174,6 +183,11 @@ class RPIRecipe:
                 )
             if peters and getattr(self, k) is None:
                 object.__setattr__(self, k, v)
+        if peters and self.collision_margin is None:
+            _num("proximity_radius", self.proximity_radius, 0.0)
+            _num("radius", self.radius, 0.0)
+            reach = max(float(self.proximity_radius) - 2 * float(self.radius), 0.0)
+            object.__setattr__(self, "collision_margin", reach)
         self._check_sizes()
         if peters:
             self._check_peters()
