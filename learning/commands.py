@@ -26,6 +26,30 @@ def _parse_set(items: tuple[str, ...]) -> dict:
     return parse_settings(items, "--set")
 
 
+def _parse_loss_weights(text: str, field_name: str = "--loss-weights"):
+    """``IMIT,GOAL,PROB`` (three finite numbers >= 0) as :class:`learning.losses.LossWeights`;
+    anything else is a :class:`SpecError` naming ``field_name``."""
+    import math
+
+    from .losses import LossWeights
+
+    parts = [p.strip() for p in str(text).split(",")]
+    values = []
+    for p in parts:
+        try:
+            values.append(float(p))
+        except ValueError:
+            values = None
+            break
+    if values is None or len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise SpecError(
+            field_name,
+            "expected three finite numbers >= 0 separated by commas, lambda_1,lambda_2,lambda_3 "
+            f"(imitation, goal, probability), e.g. 1,0.1,0.1; got {text!r}",
+        )
+    return LossWeights(*values)
+
+
 def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     from dataclasses import fields
 
@@ -93,6 +117,20 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     help="S, LM steps of the game layer (default 2).",
 )
 @click.option(
+    "--loss-weights",
+    default=None,
+    metavar="IMIT,GOAL,PROB",
+    help="lambda_1,lambda_2,lambda_3 of L = l1 L_imit + l2 L_goal + l3 L_prob, e.g. 1,1,1 "
+    "(default: the paper's for the model: ours 1,0.1,0.1; sc, tgl, vlstm 1,0,1).",
+)
+@click.option(
+    "--imitation-reduction",
+    type=click.Choice(["mean", "sum"]),
+    default=None,
+    help="The imitation loss over the future steps: mean (default) or sum (the paper's "
+    "form, App. F.4; K times the mean).",
+)
+@click.option(
     "--set",
     "overrides",
     multiple=True,
@@ -118,7 +156,8 @@ def _model_config(kind: str, modes: int | None, data: Path, overrides: dict):
     default=None,
     metavar="NAME",
     help="Settings of a paper experiment (learning.presets), e.g. waymo: batch 32, lr 1e-4, "
-    "loss weights 1/1/1, M = 6, regressed goals; options given here override them.",
+    "loss weights 1/1/1, imitation loss summed over the steps, M = 6, regressed goals; "
+    "options given here override them.",
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
 @click.option(
@@ -146,6 +185,8 @@ def train_cmd(
     seed,
     modes,
     lm_steps,
+    loss_weights,
+    imitation_reduction,
     overrides,
     checkpoint_steps,
     threads,
@@ -165,6 +206,7 @@ def train_cmd(
     from .train import TrainConfig, check_run_dir
 
     p = None if preset is None else get_preset(preset)
+    given_loss = None if loss_weights is None else _parse_loss_weights(loss_weights)
     check_run_dir(out, data, field="--out")
     over = _parse_set(overrides)
     loss = None
@@ -183,6 +225,10 @@ def train_cmd(
         modes = preset_modes if modes is None and "modes" not in over else modes
         over = {**pm, **over}
         loss = LossWeights(**p.loss)
+        if imitation_reduction is None:
+            imitation_reduction = p.imitation_reduction
+    if given_loss is not None:
+        loss = given_loss
     if lm_steps is not None:
         over["lm_steps"] = lm_steps
     model = _model_config(kind, modes, data, over)
@@ -194,6 +240,7 @@ def train_cmd(
         seed=seed,
         loss=loss,
         checkpoint_steps=checkpoint_steps,
+        imitation_reduction=imitation_reduction or "mean",
     )
     import os
 

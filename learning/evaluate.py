@@ -19,6 +19,12 @@ agent of a Waymo pair) also gets :data:`learning.metrics.FOCAL_METRICS`: ``ADE_f
 ``FDE_focal`` (that agent's best of the M modes: the benchmark's best of 20 with M = 20) and
 ``ADE_focal_top1`` / ``FDE_focal_top1`` (its most likely mode).
 
+Initial strategies: ours' output has the rollout of its learned initialization
+(``init_pos``, before the game layer's ``S`` steps); it is scored with the same metrics,
+reported with the prefix ``init_`` (``init_minSADE``, ...; :mod:`learning.scoring`): in
+the per-run and per-method CSV files and in a second table, "Initial strategies", under
+the main one. Models without one (the baselines, CV) have no such values.
+
 Subsets (:func:`parse_subset`): ``subsets=["interacting"]`` or ``["min_distance<1"]``
 scores the samples whose scalar per-sample field (shape ``()``, read for the call only:
 :meth:`learning.data.SceneDataset.sample_field`) compares so with the number, beside the
@@ -53,6 +59,7 @@ from .data import SceneDataset
 from .metrics import FOCAL_METRICS
 from .models import ModelConfig
 from .scoring import (
+    INIT_PREFIX,
     METRICS,
     evaluate_model,
     mean_metrics,
@@ -232,11 +239,17 @@ class EvalReport:
         focal = any("ADE_focal" in r.metrics for r in self.results)
         return METRICS + (("OR_circle",) if box else ()) + (FOCAL_METRICS if focal else ())
 
+    def init_names(self) -> tuple[str, ...]:
+        """The metrics of the initial strategies (:meth:`metric_names` prefixed ``init_``)
+        that some result has; () when no result has any (no model with ``init_pos``)."""
+        names = (INIT_PREFIX + k for k in self.metric_names())
+        return tuple(k for k in names if any(k in r.metrics for r in self.results))
+
     def summary_rows(self) -> list[dict]:
         rows = []
         for label, rs in self.groups():
             row = {"method": label, "runs": len(rs), "samples": rs[0].samples}
-            for k in self.metric_names():
+            for k in self.metric_names() + self.init_names():
                 v = [r.metrics.get(k, math.nan) for r in rs]
                 row[f"{k}_mean"] = float(np.mean(v))
                 row[f"{k}_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else math.nan
@@ -279,7 +292,30 @@ class EvalReport:
         for label, rs in self.groups():
             cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in names]
             lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
+        lines += self._init_table()
         return "\n".join(lines) + "\n" + "".join("\n" + sub.markdown() for sub in self.subsets)
+
+    def _init_table(self) -> list[str]:
+        """The lines of the initial strategies' table (methods with ``init_`` values), or []."""
+        init = self.init_names()
+        if not init:
+            return []
+        names = [k.removeprefix(INIT_PREFIX) for k in init]
+        lines = [
+            "",
+            "Initial strategies (the rollout of the learned initialization, before the game "
+            "layer's S steps; the modes ranked by the same scene probabilities), the same "
+            "metrics:",
+            "",
+            "| Method | runs | " + " | ".join(names) + " |",
+            "|---|---:|" + "---:|" * len(names),
+        ]
+        for label, rs in self.groups():
+            if not any(k in r.metrics for r in rs for k in init):
+                continue
+            cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in init]
+            lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
+        return lines
 
     def write(self, prefix: str | os.PathLike) -> list[Path]:
         """``PREFIX.md`` (the tables), ``PREFIX.csv`` (per method), ``PREFIX_runs.csv`` (per
@@ -325,9 +361,12 @@ class EvalReport:
 
 
 def _csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` as CSV: the union of their keys as columns, in order of appearance (a run
+    without initial strategies leaves the ``init_`` cells empty)."""
     buf = io.StringIO()
     if rows:
-        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        keys = list(dict.fromkeys(k for r in rows for k in r))
+        w = csv.DictWriter(buf, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
     write_atomic(path, buf.getvalue())

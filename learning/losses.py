@@ -2,15 +2,21 @@
 
 ``L = lambda_1 L_imit + lambda_2 L_goal + lambda_3 L_prob`` with the paper's weights
 ``(1, 0.1, 0.1)`` for ours. ``L_imit`` is the minSADE loss: the joint mode closest to
-the ground truth, ``min_m 1/N sum_i mean_t ||x^m_{i,t} - x^GT_{i,t}||^2`` (the paper's
-squared norm of the trajectory difference, averaged over steps so that its scale does
-not depend on the horizon). ``L_prob`` is the cross entropy of the scene
+the ground truth. Its reduction over the ``K`` future steps (:data:`IMITATION_REDUCTIONS`,
+``imitation_reduction``) is ``"mean"`` by default,
+``min_m 1/N sum_i mean_t ||x^m_{i,t} - x^GT_{i,t}||^2`` (averaged over steps so that its
+scale does not depend on the horizon), or ``"sum"``,
+``min_m 1/N sum_i sum_t ||x^m_{i,t} - x^GT_{i,t}||^2``: the paper's form (App. F.4), the
+squared norm of the whole trajectory difference, ``K`` times the mean (so its weight
+against ``L_goal`` and ``L_prob`` is ``K`` times larger; the closest mode is the same).
+``L_prob`` is the cross entropy of the scene
 probabilities with that closest mode as the target. ``L_goal`` (:func:`goal_loss`, only for
 ours with a goal decoder; in RPI the goals are given and it is zero): the cross entropy of
 each agent's goal distribution with the candidate closest to its ground-truth final
 position as the target, averaged over agents (App. F.4, Eq. (11)); or, for regressed
 goals, the minSFDE-style ``min_m 1/N sum_i ||g^m_i - x_GT,i,T||^2`` (App. F.4, Waymo). The SC baseline uses ``L_imit + L_prob`` (paper Sec. 5); the
-marginal V-LSTM uses per-agent minADE plus a per-agent classification loss.
+marginal V-LSTM uses per-agent minADE plus a per-agent classification loss (with
+``"sum"`` the per-step distances are summed over the steps instead).
 
 Shapes follow :mod:`learning.metrics`: ``pos`` ``(B, M, N, T, 2)``, ``gt`` ``(B, N, T, 2)``.
 
@@ -28,10 +34,13 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from epo_casadi.errors import SpecError
+
 from .masks import active, where_agents
 from .metrics import agent_mean
 
 __all__ = [
+    "IMITATION_REDUCTIONS",
     "LossWeights",
     "scene_loss",
     "marginal_loss",
@@ -56,6 +65,21 @@ class LossWeights:
     probability: float = 0.1  #: lambda_3
 
 
+#: how the imitation loss reduces its per-step terms over the future steps
+IMITATION_REDUCTIONS = ("mean", "sum")
+
+
+def _over_time(v: torch.Tensor, reduction: str) -> torch.Tensor:
+    """``v`` ``(..., T)`` reduced over its last (time) axis: ``"mean"`` or ``"sum"``."""
+    if reduction == "mean":
+        return v.mean(-1)
+    if reduction == "sum":
+        return v.sum(-1)
+    raise SpecError(
+        "imitation_reduction", f"expected one of {list(IMITATION_REDUCTIONS)}, got {reduction!r}"
+    )
+
+
 def _masked_mean(v: torch.Tensor, mask) -> torch.Tensor:
     """Mean of per-agent values ``v`` ``(B, N)`` over the batch and the agents of ``mask``."""
     if mask is None:
@@ -74,11 +98,19 @@ def _real(mask, *pairs):
 
 
 def scene_loss(
-    pos, logits, gt, weights: LossWeights = LossWeights(), mask=None
+    pos,
+    logits,
+    gt,
+    weights: LossWeights = LossWeights(),
+    mask=None,
+    imitation_reduction: str = "mean",
 ) -> dict[str, torch.Tensor]:
-    """Joint (scene-level) loss; returns the total and its parts (means over the batch)."""
+    """Joint (scene-level) loss; returns the total and its parts (means over the batch).
+
+    ``imitation_reduction``: the squared distances of the ``T`` steps averaged (``"mean"``)
+    or summed (``"sum"``, the paper's ``||x^m_i - x_GT||^2``) per agent."""
     mask, (pos, gt) = _real(mask, (pos, 2), (gt, 1))
-    sq = ((pos - gt[:, None]) ** 2).sum(-1).mean(-1)  # (B, M, N)
+    sq = _over_time(((pos - gt[:, None]) ** 2).sum(-1), imitation_reduction)  # (B, M, N)
     per_mode = agent_mean(sq, mask)  # (B, M)
     best = per_mode.argmin(dim=1)
     imit = per_mode.gather(1, best[:, None]).mean()
@@ -88,14 +120,21 @@ def scene_loss(
 
 
 def marginal_loss(
-    pos, logits, gt, weights: LossWeights = LossWeights(probability=1.0), mask=None
+    pos,
+    logits,
+    gt,
+    weights: LossWeights = LossWeights(probability=1.0),
+    mask=None,
+    imitation_reduction: str = "mean",
 ) -> dict[str, torch.Tensor]:
     """Marginal loss: per agent the closest mode's ADE, plus classification of that mode.
 
-    ``logits`` are per agent, ``(B, N, M)``.
+    ``logits`` are per agent, ``(B, N, M)``. ``imitation_reduction``: the distances of the
+    ``T`` steps averaged (``"mean"``, the ADE) or summed (``"sum"``).
     """
     mask, (pos, gt, logits) = _real(mask, (pos, 2), (gt, 1), (logits, 1))
-    ade = torch.linalg.vector_norm(pos - gt[:, None], dim=-1).mean(-1)  # (B, M, N)
+    d = torch.linalg.vector_norm(pos - gt[:, None], dim=-1)
+    ade = _over_time(d, imitation_reduction)  # (B, M, N)
     best = ade.argmin(dim=1)  # (B, N)
     imit_agent = ade.gather(1, best[:, None]).squeeze(1)  # (B, N)
     ce = F.cross_entropy(

@@ -8,6 +8,13 @@ the whole split or a subset of its samples); :func:`evaluate_model` is the two i
 directories, the table) both import it from here, so neither of them imports the other
 for it.
 
+Initial strategies: a model whose output has ``init_pos`` (ours: the rollout of the
+learned initialization ``U_init``, before the game layer's ``S`` steps) is scored on it as
+well, with the same metric functions, mask and scene probabilities (the model's, computed
+from the optimized modes: they rank the initial modes for ``OR`` and the top-1 focal
+errors); those values are the metrics' names with the prefix :data:`INIT_PREFIX`
+(``init_minSADE``, ...). A model without ``init_pos`` (the baselines) has none.
+
 The overlap rate's shapes (:func:`overlap_shapes`): oriented boxes where the dataset stores
 ``length`` and ``width`` (:func:`boxes`; then the circles are ``OR_circle``), circles
 otherwise. The circles' radii are each sample's ``radius`` where the dataset stores it and
@@ -27,6 +34,7 @@ from .data import SceneDataset
 from .metrics import FOCAL_METRICS, all_metrics
 
 __all__ = [
+    "INIT_PREFIX",
     "METRICS",
     "FOCAL_METRICS",
     "evaluate_model",
@@ -38,6 +46,8 @@ __all__ = [
 ]
 
 METRICS = ("minADE", "minFDE", "minSADE", "minSFDE", "OR")
+#: prefix of the metrics of a model's initial strategies (output ``init_pos``)
+INIT_PREFIX = "init_"
 
 
 def predict(model: torch.nn.Module, batch: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
@@ -92,7 +102,9 @@ def score_samples(
 ) -> dict[str, np.ndarray]:
     """Every metric of every sample of ``data``, in sample order: ``{name: (n,) float64}``
     (:data:`METRICS`, ``OR_circle`` on data with vehicle sizes, :data:`FOCAL_METRICS` with
-    ``focal``, an agent slot; NaN where that slot is a pad). The model is put in eval mode.
+    ``focal``, an agent slot; NaN where that slot is a pad; each also with the prefix
+    :data:`INIT_PREFIX` for a model whose output has ``init_pos``, module docstring). The
+    model is put in eval mode.
     Every metric counts only the batch's real agents (``agents_mask``; the overlap rate only
     pairs of real agents)."""
     game_radii = torch.tensor([a.radius for a in data.game.agents], dtype=torch.float32)
@@ -108,18 +120,22 @@ def score_samples(
     try:
         with torch.no_grad():
             for batch in data.batches(batch_size):
-                pos, probs, _ = predict(model, batch)
-                m = all_metrics(
-                    pos.float(),
-                    batch["gt"],
-                    probs.float(),
-                    batch["radius"] if per_sample else game_radii,
-                    mask=batch.get("agents_mask"),
-                    boxes=boxes(batch),
-                    focal=focal,
-                )
-                for k, v in m.items():
-                    parts.setdefault(k, []).append(v.double().cpu().numpy())
+                pos, probs, out = predict(model, batch)
+                scored = [("", pos)]
+                if out.get("init_pos") is not None:
+                    scored.append((INIT_PREFIX, out["init_pos"]))
+                for prefix, p in scored:
+                    m = all_metrics(
+                        p.float(),
+                        batch["gt"],
+                        probs.float(),
+                        batch["radius"] if per_sample else game_radii,
+                        mask=batch.get("agents_mask"),
+                        boxes=boxes(batch),
+                        focal=focal,
+                    )
+                    for k, v in m.items():
+                        parts.setdefault(prefix + k, []).append(v.double().cpu().numpy())
                 if bar is not None:
                     bar.update(pos.shape[0])
     finally:
@@ -142,7 +158,7 @@ def mean_metrics(per: dict[str, np.ndarray], select: np.ndarray | None = None) -
     for k, v in per.items():
         v = v if select is None else v[select]
         n = v.size
-        if k in FOCAL_METRICS:
+        if k.removeprefix(INIT_PREFIX) in FOCAL_METRICS:
             ok = ~np.isnan(v)
             out[k] = float(v[ok].mean()) if ok.any() else math.nan
         else:
@@ -164,7 +180,8 @@ def evaluate_model(
     ``OR_circle`` is added (circles: :func:`sample_radii`); with ``focal`` (an agent slot)
     :data:`FOCAL_METRICS`. Every metric counts only the batch's real agents
     (``agents_mask``; the overlap rate only pairs of real agents): a sample's value is the
-    mean over its real agents, then samples count alike."""
+    mean over its real agents, then samples count alike. A model with initial strategies
+    (ours) also gets each metric of them, prefixed :data:`INIT_PREFIX`."""
     per = score_samples(model, data, batch_size, progress, focal)
     out = mean_metrics(per)
     if out["samples"] == 0:  # e.g. an empty val split: say so instead of a silent "minADE nan"

@@ -5,8 +5,11 @@ Optimizer and losses
     Loss weights ``(lambda_imit, lambda_goal, lambda_prob)`` by model kind
     (:data:`PAPER_LOSS_WEIGHTS`): ours ``(1, 0.1, 0.1)``; V-LSTM + SC ``(1, 0, 1)``
     (``L_imit + L_prob``, Sec. 5); V-LSTM marginal: minADE + classification ``(1, -, 1)``.
-    The goal loss is zero on RPI (goals are given). The networks train in float32; the game
-    layer solves in float64 inside and casts back (:mod:`learning.layer`). Padded agents
+    The goal loss is zero on RPI (goals are given). ``imitation_reduction`` reduces the
+    imitation loss over the future steps: ``"mean"`` (the default) or ``"sum"`` (the
+    paper's App. F.4 form, ``K`` times the mean; :mod:`learning.losses`). The networks
+    train in float32; the game layer solves in float64 inside and casts back
+    (:mod:`learning.layer`). Padded agents
     (the batch's ``agents_mask`` False, :mod:`learning.masks`) count in no loss term.
 
 A run directory (``out_dir``)::
@@ -16,7 +19,8 @@ A run directory (``out_dir``)::
     best.pt          model weights of the epoch with the lowest validation minSADE
     metrics.csv      one row per epoch: train loss parts, samples/s, learning rate, the
                      game layer's status counts (``layer_<status>``: ours, + TGL),
-                     validation metrics
+                     validation metrics (``val_<metric>``; for ours also those of the
+                     initial strategies, ``val_init_<metric>``: :mod:`learning.scoring`)
     loss.png         training loss and validation minADE/minSADE per epoch
     tb/              TensorBoard events, with ``tensorboard=True`` (``epo train``: unless
                      ``--no-tensorboard``): per step ``train/loss``, ``train/imitation``,
@@ -112,7 +116,7 @@ from .distributed import (
     launch,
     shard,
 )
-from .losses import LossWeights, goal_loss, marginal_loss, scene_loss
+from .losses import IMITATION_REDUCTIONS, LossWeights, goal_loss, marginal_loss, scene_loss
 from .models import ModelConfig, build_model, count_parameters
 from .records import plot_history, predictions_image, tensorboard_writer, write_csv
 from .scoring import METRICS, evaluate_model, mean_metrics, score_samples
@@ -156,6 +160,8 @@ class TrainConfig:
     checkpoint_steps: int = 0  #: also checkpoint every this many steps (0: at epoch ends only)
     eval_batch_size: int = 64  #: batch size of the validation pass
     val_split: str | None = "val"  #: split scored after every epoch (None: none)
+    #: the imitation loss over the future steps: "mean" or "sum" (the paper's App. F.4)
+    imitation_reduction: str = "mean"
 
     def __post_init__(self):
         if not isinstance(self.model, ModelConfig):
@@ -172,6 +178,11 @@ class TrainConfig:
         lr = self.lr
         if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not 0 < lr < math.inf:
             raise SpecError("train.lr", f"expected a finite number > 0, got {lr!r}")
+        if self.imitation_reduction not in IMITATION_REDUCTIONS:
+            raise SpecError(
+                "train.imitation_reduction",
+                f"expected one of {list(IMITATION_REDUCTIONS)}, got {self.imitation_reduction!r}",
+            )
         if self.val_split not in (None, "train", "val", "test"):
             raise SpecError(
                 "train.val_split",
@@ -281,16 +292,27 @@ def load_model(run_dir: str | os.PathLike, game, which: str = "best"):
 # losses, records
 # --------------------------------------------------------------------------------------
 def compute_loss(
-    kind: str, out: dict, gt: torch.Tensor, weights: LossWeights, mask: torch.Tensor | None = None
+    kind: str,
+    out: dict,
+    gt: torch.Tensor,
+    weights: LossWeights,
+    mask: torch.Tensor | None = None,
+    imitation_reduction: str = "mean",
 ) -> dict[str, torch.Tensor]:
     """The training loss of a model's output: scene loss (ours, SC) or marginal loss (V-LSTM),
     plus ``weights.goal`` times the goal loss when the model decodes goals (part ``goal``,
     zero otherwise). ``mask`` ``(B, N)``: the batch's ``agents_mask``; every per-agent term
-    averages over its real agents only (:mod:`learning.losses`)."""
+    averages over its real agents only (:mod:`learning.losses`). ``imitation_reduction``:
+    the imitation loss's reduction over the future steps, ``"mean"`` or ``"sum"``."""
+    red = imitation_reduction
     if kind == "vlstm":
-        parts = marginal_loss(out["pos"], out["marginal_logits"], gt, weights, mask=mask)
+        parts = marginal_loss(
+            out["pos"], out["marginal_logits"], gt, weights, mask=mask, imitation_reduction=red
+        )
     else:
-        parts = scene_loss(out["pos"], out["logits"], gt, weights, mask=mask)
+        parts = scene_loss(
+            out["pos"], out["logits"], gt, weights, mask=mask, imitation_reduction=red
+        )
     g = goal_loss(out, gt, mask)
     if g is None:
         parts["goal"] = torch.zeros((), dtype=parts["loss"].dtype)
@@ -673,7 +695,12 @@ def _train_step(run: _Run, pr: _Progress, batch: dict, t0: float, n_global: int)
         with _diverged(pr.epoch, pr.step + 1, cfg.lr, run.ck_path, "the model's output"):
             res = run.net(batch)
         parts = compute_loss(
-            cfg.model.kind, res, batch["gt"], cfg.loss_weights, batch.get("agents_mask")
+            cfg.model.kind,
+            res,
+            batch["gt"],
+            cfg.loss_weights,
+            batch.get("agents_mask"),
+            cfg.imitation_reduction,
         )
         if run.world.size == 1:
             loss, vals, status = parts["loss"], None, _status_counts(run, res)
@@ -808,6 +835,8 @@ def _epoch_row(run: _Run, pr: _Progress, t0: float) -> dict:
         with _diverged(pr.epoch, pr.step, run.cfg.lr, run.ck_path, "the validation output"):
             vm = _validate(run)
         row.update({f"val_{k}": vm[k] for k in METRICS})
+        # the initial strategies of a model with them (ours): val_init_minADE, ...
+        row.update({f"val_init_{k}": vm[f"init_{k}"] for k in METRICS if f"init_{k}" in vm})
         row["val_seconds"] = round(time.perf_counter() - t1, 3)
     else:
         row.update({f"val_{k}": math.nan for k in METRICS})
