@@ -270,6 +270,8 @@ def test_a_killed_two_rank_run_resumes(two_ranks, tmp_path, capsys):
     assert {"train/loss", "train/imitation", "train/probability", "train/lr"} <= tags["scalars"]
     assert {"epoch/train_loss", "epoch/val_minADE", "epoch/val_minSADE"} <= tags["scalars"]
     assert tags["images"] == ["predictions"]
+    # it resumed after step 4 (a run from scratch ends with the same parameters)
+    assert tags["train/loss steps"] == [5, 6]
 
     one = train(data, tmp_path / "killed-1", _cfg(), progress=False)  # on one process
     assert one.resumed_from == 4 and [s for s, _ in one.step_losses] == [5, 6]
@@ -285,4 +287,8 @@ def _event_tags(folder) -> dict:
     acc = EventAccumulator(str(folder), size_guidance={"images": 0, "scalars": 0})
     acc.Reload()
     tags = acc.Tags()
-    return {"scalars": set(tags["scalars"]), "images": list(tags["images"])}
+    return {
+        "scalars": set(tags["scalars"]),
+        "images": list(tags["images"]),
+        "train/loss steps": [e.step for e in acc.Scalars("train/loss")],
+    }

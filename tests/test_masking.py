@@ -503,6 +503,7 @@ def test_e_train_runs_and_the_figure_draws_real_agents_only(padded_dataset, tmp_
     monkeypatch.setattr(scenarios.plotting, "save_figure", lambda fig, *a, **k: figs.append(fig))
     for run in (tmp_path / "run", "cv"):
         show_predictions(run, padded_dataset, 1, tmp_path / "x.png", split="train")  # agent 1 a pad
+    assert len(figs) == 2  # one figure each: ours and CV
     for fig in figs:
         ax = fig.axes[0]
         labels = [ln.get_label() for ln in ax.get_lines()]
@@ -530,3 +531,39 @@ def test_goal_decoder_batch_norm_counts_real_agents_only(game):
         outs[1]["goal_logits"][:B], outs[0]["goal_logits"], rtol=0, atol=1e-12
     )
     assert torch.equal(outs[1]["goal_logits"][B:], torch.zeros_like(outs[1]["goal_logits"][B:]))
+
+
+def _without_pad(batch: dict, b: int, i: int) -> dict:
+    """Scene ``b`` of ``batch`` with agent slot ``i`` removed (no ``agents_mask``): the same
+    real agents, recorded without padding."""
+    keep = [j for j in range(N) if j != i]
+    out = {}
+    for k, v in batch.items():
+        if k == "agents_mask":
+            continue
+        v = v[b : b + 1]
+        out[k] = v[:, :, keep] if k == "history" else v[:, keep]
+    return out
+
+
+@pytest.mark.parametrize("backbone", ["vlstm", "vibes", "hivt"])
+def test_real_agents_encode_as_if_the_pad_were_not_there(game, backbone):
+    """The encoders' attention never reads a pad: the real agents' features of a padded
+    scene equal those of the same scene recorded without the pad's slot (an unpadded run on
+    fewer agents), and so do V-LSTM's outputs (its parameters do not depend on ``N``)."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(kind="vlstm", modes=2, backbone=backbone, **TINY)
+    model = build_model(cfg, game).double().eval()
+    two = build_model(cfg, _real_game(game)).double().eval()
+    two.load_state_dict(model.state_dict())
+    batch = _fill_pads(_batch(game), float("nan"))
+    with torch.no_grad():
+        z = model.encoder(neutral_scene(batch))
+        out = model(batch)
+        for b, i in PADS:
+            keep = [j for j in range(N) if j != i]
+            alone = _without_pad(batch, b, i)
+            torch.testing.assert_close(z[b, keep], two.encoder(alone)[0], rtol=0, atol=1e-12)
+            ref = two(alone)
+            torch.testing.assert_close(out["pos"][b, :, keep], ref["pos"][0], rtol=0, atol=1e-12)
+            assert torch.equal(z[b, i], torch.zeros_like(z[b, i]))

@@ -331,7 +331,7 @@ def test_single_linkage_is_dbscan_with_one_point(head_on):
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.spatial.distance import squareform
 
-    from solvers.multimodal import _agglomerate
+    from solvers.multimodal import _agglomerate, dbscan
 
     g, p, res = head_on
     sets = [*_point_sets(), trajectory_distances(g, res.results.states)]
@@ -341,6 +341,8 @@ def test_single_linkage_is_dbscan_with_one_point(head_on):
             want = _canonical(fcluster(Z, t=tol, criterion="distance"))
             np.testing.assert_array_equal(_canonical(_agglomerate(D, tol, "single")), want)
             np.testing.assert_array_equal(_canonical(_components(D, tol)), want)
+            just_above = np.nextafter(tol, np.inf)
+            np.testing.assert_array_equal(_canonical(dbscan(D, just_above, 1)), want)
     # solve_multimodal with single linkage: the same modes as the default average linkage
     # on this well separated set
     single = solve_multimodal(g, p, n_samples=N_SAMPLES, seed=0, clustering={"linkage": "single"})
@@ -353,7 +355,9 @@ def test_clustering_library_is_imported_on_use_only():
 
     code = (
         "import sys, solvers, solvers.multimodal, scenarios.rpi_peters\n"
+        "print('sklearn' in sys.modules)\n"
+        "solvers.multimodal.dbscan([[0.0]], 1.0, 1)\n"
         "print('sklearn' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip().splitlines()[-1] == "False"
+    assert out.stdout.strip().splitlines()[-2:] == ["False", "True"]

@@ -355,6 +355,7 @@ def test_sigterm_in_highway_raw_exits_130_without_leaks_and_resumes(tmp_path, ca
             time.sleep(0.02)
         assert p.poll() is None, "the run ended before it could be stopped"
         family = process_family(p.pid)
+        assert len(family) >= 2, family  # the pool's two workers are running
         p.send_signal(signal.SIGTERM)
         _, err = p.communicate(timeout=60)
     finally:

@@ -270,6 +270,14 @@ def test_tensorboard_events_hold_what_the_run_recorded(tmp_path):
         and sum(per_step[3:]) == rows[1]["layer_max_iter"]
     )
     assert sum(rows[0][f"layer_{s.value}"] for s in STATUS_CODES) == 8 * cfg.model.modes
+    # per step, the problems of every status add up to the step's samples x modes (8
+    # samples in batches of 3: 3, 3, 2 per epoch), and per epoch to the row's counts
+    per_status = {s.value: [e.value for e in acc.Scalars(f"layer/{s.value}")] for s in STATUS_CODES}
+    assert [sum(v[k] for v in per_status.values()) for k in range(6)] == [
+        n * cfg.model.modes for n in (3, 3, 2, 3, 3, 2)
+    ]
+    for s, v in per_status.items():
+        assert (sum(v[:3]), sum(v[3:])) == (rows[0][f"layer_{s}"], rows[1][f"layer_{s}"]), s
     val = [(e.step, e.value) for e in acc.Scalars("epoch/val_minSADE")]
     assert [s for s, _ in val] == [3, 6]
     for (_, got), row in zip(val, rows, strict=True):
