@@ -293,7 +293,7 @@ class GameLayer(nn.Module):
         games without stage structure) or ``"auto"``: staged with ``compiled=True`` where
         the one graph is large (above
         :data:`~learning.layer_core.STAGED_VJP_MIN_INSTRUCTIONS`: there the staged C is 2
-        to 9x faster and compiles in seconds, where the one graph compiles at ``-O0`` in
+        to 9x faster (:mod:`solvers.fast_vjp`, ``bench/bench_layer.py --part vjp``), where the one graph compiles at ``-O0`` in
         minutes or not at all), else monolithic (small graphs compile well and run faster;
         interpreted, both cost about the same). :attr:`vjp` says which is used.
     """

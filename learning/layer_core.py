@@ -94,12 +94,11 @@ def layer_functions(game: PotentialGame, name: str) -> ca.Function:
 # The numeric core (numpy, float64)
 # --------------------------------------------------------------------------------------
 #: with ``compiled=True`` the layer's functions above this many CasADi instructions stay
-#: interpreted (:attr:`GameLayer.interpreted` names them). Measured on this project's
-#: 2-core machine: the RPI game's step VJP (28k) compiles in seconds; the exiD game's
-#: (342k, N = 4, K = 20) took about 5 min and 7.7 GB per gcc at -O0 and then ran only 1.6x
-#: faster than the interpreter (0.678 against 1.103 ms per problem and step,
-#: ``bench/bench_layer.py --part vjp``); the left-turn game's (666k) got gcc killed for
-#: memory. Games with a stage structure use the stage-wise VJP instead (small functions)
+#: interpreted (:attr:`GameLayer.interpreted` names them): ``bench/bench_layer.py --part
+#: vjp`` compiles each game's step VJP and times it against the interpreter (the exiD
+#: game's, 342k instructions at N = 4, K = 20, ran 1.6x faster compiled at -O0: 0.678
+#: against 1.103 ms per problem and step), so a larger graph gains little for a compile
+#: that grows with its size. Games with a stage structure use the stage-wise VJP instead (small functions)
 MAX_COMPILED_INSTRUCTIONS = 150_000
 #: with ``compiled=True`` and ``vjp="auto"`` the step VJP is staged when the one graph
 #: (``lm_step_vjp``) has more SX instructions than this: the size from which
