@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import casadi as ca
 import numpy as np
 
 from epo_casadi import (
@@ -12,6 +15,7 @@ from epo_casadi import (
     GameSpec,
     Goal,
     Jerk,
+    JointDynamics,
     PotentialGame,
     TurnRate,
     TurnRateBound,
@@ -54,6 +58,50 @@ def crossing_spec(
 
 def crossing_game(**kw) -> PotentialGame:
     return PotentialGame(crossing_spec(**kw))
+
+
+def solved_crossing():
+    """``(game, p, u0, sol)``: the 2-agent crossing ``crossing_game(offset=0.3)``, its
+    default parameters, the start ``u0`` (every control ``[1, 0]``) and IPOPT's potential
+    minimizer from it (converged, with the collision term active: the agents interact)."""
+    from solvers.ipopt import solve_ipopt
+    from solvers.result import Status
+
+    g = crossing_game(offset=0.3)
+    p = g.default_params()
+    u0 = g.join_controls([np.tile([1.0, 0.0], (g.K, 1)) for _ in range(g.N)])
+    sol = solve_ipopt(g, p, u0)
+    assert sol.status is Status.CONVERGED
+    coll = next(t.index for t in g.terms if t.feature_type == "collision")
+    assert float(g.function("term_energies")(sol.controls, p)[coll]) > 1e-3
+    return g, p, u0, sol
+
+
+@dataclass(frozen=True)
+class LinearJoint(JointDynamics):
+    """``x_{k+1} = A x_k + B u_k`` over the members' stacked states and controls (4 states
+    per member, in member order)."""
+
+    name = "linear_joint"
+    A: tuple = ()
+    B: tuple = ()
+
+    def step(self, xs, us, dt):
+        x = ca.mtimes(ca.DM(self.A), ca.vertcat(*xs)) + ca.mtimes(ca.DM(self.B), ca.vertcat(*us))
+        return [x[4 * j : 4 * j + 4] for j in range(len(xs))]
+
+
+#: left-turn world options: a bold oncoming driver (aggressiveness 0.8..1, time margin down
+#: to -2 s: it takes its right of way) that is slow (0.5..1.5 m/s) 8..12 m before the zone
+#: when the ego, 7..9 m before it at about 5 m/s, observes it, and then accelerates late
+LATE_ACCELERATOR = dict(
+    aggressiveness=(0.8, 1.0),
+    margin=(2.0, -2.0),
+    ego_distance=(7.0, 9.0),
+    ego_speed=(4.5, 5.5),
+    other_distance=(8.0, 12.0),
+    other_speed=(0.5, 1.5),
+)
 
 
 def _family_features(dynamics: str, jerk: bool) -> list:

@@ -26,6 +26,8 @@ from solvers.control.plan import ConstantVelocityPlanner, GameOracle
 from solvers.control.types import AgentTask, Command, Estimate, Observation, Plan
 from solvers.control.vehicle import VehicleModel
 
+from .helpers import LATE_ACCELERATOR
+
 
 # --------------------------------------------------------------------------------------
 # stand-ins: a unicycle world, a perfect estimator, an open-loop tracker
@@ -164,18 +166,7 @@ def _bold_slow_start(**kw) -> LeftTurnWorld:
     oncoming driver (aggressiveness 0.8..1, time margin down to -2 s: it takes its right of
     way) that is slow (0.5..1.5 m/s) 8..12 m before the zone when the ego, 7..9 m before it
     at about 5 m/s, observes it, and then accelerates (IDM) to its desired speed."""
-    return LeftTurnWorld(
-        noise_std=0.0,
-        aggressiveness=(0.8, 1.0),
-        margin=(2.0, -2.0),
-        ego_distance=(7.0, 9.0),
-        ego_speed=(4.5, 5.5),
-        other_distance=(8.0, 12.0),
-        other_speed=(0.5, 1.5),
-        max_steps=40,
-        goal_distance=3.0,
-        **kw,
-    )
+    return LeftTurnWorld(noise_std=0.0, max_steps=40, goal_distance=3.0, **LATE_ACCELERATOR, **kw)
 
 
 def test_game_oracle_avoids_collisions_where_constant_velocity_collides():
@@ -192,6 +183,7 @@ def test_game_oracle_avoids_collisions_where_constant_velocity_collides():
             r = run_episode(w, PerfectEstimator(w), cls({"horizon": 20}), FirstControl(), seed)
             assert w.character.aggressiveness >= 0.8 and r.log.truth[:, 1, 2].max() > 3.0
             outcomes[name].append(r.outcome)
+            assert r.log.truth[:, 0, 2].min() >= 0.0, (name, seed)  # the ego never reverses
             if name == "oracle":  # a conflict that was resolved: the car passed the zone
                 s = project_to_polyline(w.truth()[1:, :2], w.other_route)[0][0]
                 assert s > w.conflict.b[1], (seed, s, w.conflict.b)

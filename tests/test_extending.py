@@ -13,7 +13,6 @@ from __future__ import annotations
 import importlib
 import re
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
@@ -29,7 +28,6 @@ from epo_casadi import (
     Coupling,
     GameSpec,
     Goal,
-    JointDynamics,
     PotentialGame,
     SpecError,
     TurnRate,
@@ -42,6 +40,8 @@ from epo_casadi.registry import DYNAMICS, FEATURES
 from scenarios.gamefile import apply_settings, dump_game, load_game, parse_game, save_game
 from solvers import nash_certificate, solve_ilq, solve_ipopt, solve_lm
 from solvers.result import Equilibrium, Verdict
+
+from .helpers import LinearJoint
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 MODULE = "my_lanes"
@@ -349,19 +349,6 @@ def test_game_file_errors_name_the_field(ext, tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------
 # coupled dynamics: a joint linear model over two agents (a textbook LQ game)
 # --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class LinearJoint(JointDynamics):
-    """``x_{k+1} = A x_k + B u_k`` over the members' stacked states and controls."""
-
-    name = "linear_joint"
-    A: tuple = ()
-    B: tuple = ()
-
-    def step(self, xs, us, dt):
-        x = ca.mtimes(ca.DM(self.A), ca.vertcat(*xs)) + ca.mtimes(ca.DM(self.B), ca.vertcat(*us))
-        return [x[0:4], x[4:8]]
-
-
 def _tow_matrices(dt=0.2, k=0.8):
     """Two planar double integrators; the second's velocity is pulled towards the
     first's (a tow line): a truly coupled joint model."""

@@ -202,6 +202,7 @@ def test_crossing_batch_equals_per_start(crossing, extra):
     opts = ILQOptions(compiled=True, max_iter=80, **extra)
     s = get_solver(g, None, opts.hessian)
     s.compile()
+    assert batchable(s, opts)  # else solve_starts solves one start after the other
     ref = _reference(s, P, U, opts)
     stops = {str(r.info["stop"]) for r in ref}
     assert {"tol", "max_iter", "line_search", "regularized_only"} <= stops

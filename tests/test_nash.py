@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 from epo_casadi import SpecError
-from solvers.ipopt import solve_ipopt
 from solvers.lm import solve_lm
 from solvers.nash import NashOptions, nash_certificate
 
-from .helpers import crossing_game
+from .helpers import crossing_game, solved_crossing
 
 
 def close_start_params(g):
@@ -30,13 +29,8 @@ def close_start_params(g):
 @pytest.fixture(scope="module")
 def crossing():
     """Crossing game, its parameters and the potential minimizer (collision term active)."""
-    g = crossing_game(offset=0.3)
-    p = g.default_params()
-    u0 = g.join_controls([np.tile([1.0, 0.0], (g.K, 1)) for _ in range(g.N)])
-    sol = solve_ipopt(g, p, u0)
+    g, p, u0, sol = solved_crossing()
     assert sol.status.ok
-    coll = next(t.index for t in g.terms if t.feature_type == "collision")
-    assert float(g.function("term_energies")(sol.controls, p)[coll]) > 1e-3  # agents interact
     return g, p, u0, sol
 
 

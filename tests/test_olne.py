@@ -41,7 +41,7 @@ from solvers.olne import OLNEOptions, game_jacobian, solve_olne
 from solvers.registry import SOLVERS, solve_game
 from solvers.result import Status, StopReason
 
-from .helpers import cli, crossing_game
+from .helpers import LinearJoint, cli, crossing_game
 
 DT = 0.2
 
@@ -60,19 +60,6 @@ class Spring(PairFeature):
 
     def residual(self, a, b):
         return ca.vertcat(*[a.X[0:2, k] - b.X[0:2, k] for k in self.steps(a.K)])
-
-
-@dataclass(frozen=True)
-class Linear(JointDynamics):
-    """``x_{k+1} = A x_k + B u_k`` over the members' stacked states and controls."""
-
-    name = "linear_test"
-    A: tuple = ()
-    B: tuple = ()
-
-    def step(self, xs, us, dt):
-        x = ca.mtimes(ca.DM(self.A), ca.vertcat(*xs)) + ca.mtimes(ca.DM(self.B), ca.vertcat(*us))
-        return [x[4 * j : 4 * j + 4] for j in range(len(xs))]
 
 
 def _di():
@@ -137,7 +124,7 @@ class LQ:
             for i, (wg, wv, wa) in enumerate(self.weights)
         ]
         cpl = [
-            Coupling(tuple(names[i] for i in ids), Linear(_tuple(A), _tuple(B)))
+            Coupling(tuple(names[i] for i in ids), LinearJoint(_tuple(A), _tuple(B)))
             for ids, A, B in self.couplings
         ]
         pairs = tuple((names[i], names[j]) for i, j in self.springs)

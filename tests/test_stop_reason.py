@@ -139,18 +139,26 @@ def test_result_to_dict_round_trip():
 
 
 def test_solver_results_hold_members():
-    """LM and iLQ solves give members, and the ``epo solve`` JSON gives them back."""
+    """LM, iLQ, SQP and OLNE solves give members, and the ``epo solve`` JSON gives them
+    back (OLNE's stops are returned, not assigned, so the source scan does not see them)."""
     from scenarios.commands.solve import result_dict
     from solvers.ilq import solve_ilq
     from solvers.lm import LMOptions, solve_lm
+    from solvers.olne import solve_olne
+    from solvers.sqp import solve_sqp
     from tests.test_lm import di_game
 
     g = di_game()
     p = g.default_params(goal__di=[2.0, -1.5])
+    olne_short = solve_olne(g, p, options={"max_iter": 0, "start": "given"})
+    assert olne_short.info["stop"] is StopReason.MAX_ITER
     for res in (
         solve_lm(g, p, options=LMOptions(ftol=0.0, gtol=1e-8)),
         solve_lm(g, p, options=LMOptions(ftol=0.0, gtol=1e-8, steps=2)),
         solve_ilq(g, p),
+        solve_sqp(g, p),
+        solve_olne(g, p),
+        olne_short,
     ):
         stop = res.info["stop"]
         assert type(stop) is StopReason, (res.solver, stop)
