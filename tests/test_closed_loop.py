@@ -173,9 +173,7 @@ def test_game_oracle_avoids_collisions_where_constant_velocity_collides():
     """The game must matter: on these seeded left turns the CV planner, predicting the slow
     car at its current speed, turns into it (seeds 7 and 14); the oracle, which knows its
     desired speed, lets it pass. Perfect estimates, the plan's first control applied, 2 s
-    horizon. (The CV collisions this test used to count, on seeds 0, 1 and 6, came with the
-    ego reversing at up to 2.8-4.0 m/s, which the planners and the car no longer do: there
-    CV now waits.)"""
+    horizon. Neither planner ever reverses the ego (checked on every episode)."""
     outcomes = {"oracle": [], "cv": []}
     for seed in (0, 1, 7, 14):
         for name, cls in (("oracle", GameOracle), ("cv", ConstantVelocityPlanner)):

@@ -297,8 +297,9 @@ def test_planners_treat_unconverged_tracks_conservatively():
 # --------------------------------------------------------------------------------------
 # commit logic and yielding drivers
 # --------------------------------------------------------------------------------------
-#: seeded noisy left turns where the oracle flipped: (seed, world options, passing-order
-#: switches and steps re-yielding inside the zone measured at the previous version)
+#: seeded noisy left turns where an oracle without commit hysteresis flips: (seed, world
+#: options, an upper bound on the passing-order switches, steps re-yielding inside the zone
+#: without the hysteresis)
 FLIPPED = (
     (6, {}, 5, 0),  # the default drivers; timed out
     (15, {}, 3, 14),  # timed out
@@ -308,21 +309,20 @@ FLIPPED = (
 
 @pytest.mark.parametrize("seed,world,switches,reyields", FLIPPED)
 def test_the_oracle_commits_and_clears_the_zone(seed, world, switches, reyields):
-    """Where the oracle flipped between 'ego first' and 'other first' (the passing order
-    the log itself shows, recomputed from the plans and predictions: before, 3-6 switches,
-    and re-yielding inside the zone on seeds 15 and 2), it now switches less often, never
-    re-yields inside the zone, and reaches the goal."""
+    """On episodes where an oracle without commit hysteresis switches between 'ego first'
+    and 'other first' 3-6 times (the passing order the log shows, recomputed from the plans
+    and predictions) and re-yields inside the zone (seeds 15 and 2), the oracle switches
+    fewer times, never re-yields inside the zone, and reaches the goal."""
     r = episode("oracle", seed, **world)
     assert r.metrics["reyields_in_zone"] == 0, r.metrics
     assert r.metrics["order_switches"] < switches, r.metrics
     assert r.outcome == "success", r.outcome
 
 
-def test_an_early_yielder_no_longer_freezes_the_oracle():
-    """A cautious driver that yields early (aggressiveness 0, seed 0): the oracle used to
-    predict it driving through at its desired speed while it waited, waited itself, backed
-    up and timed out; now the stopped car is predicted by its observed state and the ego
-    goes."""
+def test_an_early_yielder_does_not_freeze_the_oracle():
+    """A cautious driver that yields early (aggressiveness 0, seed 0): predicted at its
+    desired speed while it waits, it would freeze the ego until the episode times out; the
+    stopped car is predicted by its observed state, so the ego goes without backing up."""
     r = episode("oracle", 0, aggressiveness=(0.0, 0.0))
     assert r.outcome == "success", r.outcome
     assert r.metrics["min_speed"] >= 0.0
