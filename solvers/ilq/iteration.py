@@ -10,13 +10,17 @@ it at the requested regularization and the exact kinks (:meth:`SolveOnce._at_tol
 :class:`BatchSolve` runs the same iteration for many starts at once (:func:`solve_starts`,
 what :func:`solvers.ilq.solve_ilq` uses for a compiled batch): one evaluation per round
 for all running starts, each start's result the one :class:`SolveOnce` gives.
+
+Modules. This module holds :class:`SolveOnce`, :class:`BatchSolve` and :func:`solve_starts`;
+the pieces live beside it and every name stays importable from here:
+:mod:`solvers.ilq.step_rules` (the regularization's limits, the secant of the first trial
+step) and :mod:`solvers.ilq.batch_trial` (:func:`batchable`, the evaluations of a round).
 """
 
 from __future__ import annotations
 
 import math
 import time
-import weakref
 
 import numpy as np
 
@@ -24,14 +28,27 @@ from ..codegen import BufferCall as _Call
 from ..result import SolveResult, Status, StopReason
 from ..stages import from_stages, to_stages
 from . import kinks
+from .batch_trial import _BATCH_FNS as _BATCH_FNS
+from .batch_trial import _FINAL as _FINAL
+from .batch_trial import _INIT as _INIT
+from .batch_trial import _LD_U as _LD_U
+from .batch_trial import _RELIN as _RELIN
+from .batch_trial import _RESET as _RESET
+from .batch_trial import _TRIAL as _TRIAL
+from .batch_trial import _batch_functions as _batch_functions
+from .batch_trial import _Evaluation as _Evaluation
+from .batch_trial import _exact_sums as _exact_sums
+from .batch_trial import _MappedTrial as _MappedTrial
+from .batch_trial import batchable
+from .step_rules import _ARMIJO as _ARMIJO
+from .step_rules import _MAX_MU as _MAX_MU
+from .step_rules import _MAX_RESETS as _MAX_RESETS
+from .step_rules import _MIN_MU as _MIN_MU
+from .step_rules import _MIN_STEP as _MIN_STEP
+from .step_rules import _max as _max
+from .step_rules import _secant_step as _secant_step
 
 __all__ = ["BatchSolve", "SolveOnce", "batchable", "solve_starts"]
-
-_MAX_MU = 1e8  # largest global regularization the adaptive retries reach
-_MIN_MU = 1e-4  # first raised regularization; below it, a lowered one returns to mu0
-_MAX_RESETS = 2  # returns to the requested regularization before a solve is called stalled
-_MIN_STEP = 1e-2  # smallest first trial step the secant predicts (relative to step_size)
-_ARMIJO = 0.1  # sufficient decrease of the merit per unit step: (1 - c eps) x reference
 
 
 class SolveOnce:
@@ -357,57 +374,6 @@ class SolveOnce:
         )
 
 
-def _secant_step(a_old, a_new, eps, cap):
-    """First trial step of the next iteration from the last accepted one (a secant).
-
-    Along the last direction the feed-forward went from ``a_old`` to ``a_new`` with step
-    ``eps``; with ``rho = <a_new, a_old> / |a_old|^2`` the linear model
-    ``a(e) = (1 - e (1 - rho) / eps) a_old`` vanishes at ``e = eps / (1 - rho)`` (at most
-    ``cap``). An iteration that overshoots (``a`` flips sign: ``rho = -0.97`` gives about
-    half a step) is damped; after a damped step the model is refitted (``rho ~ 0``: it
-    fitted, keep the step; ``rho = 1/2``: twice the step). After a full step only a clear
-    overshoot (``rho < -1/4``) damps, so an iteration that converges with full steps keeps
-    them.
-    """
-    den = float(np.vdot(a_old, a_old))
-    if not den > 0:
-        return cap
-    rho = float(np.vdot(a_new, a_old)) / den
-    if not (math.isfinite(rho) and rho < 1.0) or (eps >= cap and rho >= -0.25):
-        return cap
-    return min(cap, max(_MIN_STEP * cap, eps / (1.0 - rho)))
-
-
-def _max(a):
-    a = np.asarray(a, float)
-    m = float(a.max()) if a.size else 0.0
-    if math.isfinite(m):  # the common case, without the masked copy
-        return m
-    a = a[np.isfinite(a)]
-    return float(a.max()) if a.size else 0.0
-
-
-# --------------------------------------------------------------------------------------
-# many starts at once
-# --------------------------------------------------------------------------------------
-# what a start's pending evaluation is for (BatchSolve.phase)
-_INIT, _TRIAL, _RESET, _RELIN, _FINAL = range(5)
-# (trial evaluation, mapped rollout) of a compiled solver, keyed by its CompiledTrial
-_BATCH_FNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def batchable(s, opts) -> bool:
-    """Whether :class:`BatchSolve` applies to solver ``s`` with ``opts``: the one-call
-    trial in generated C (``compiled=True``, the game's own costs) and the residual line
-    search (after :meth:`solvers.ilq.ILQSolver.compile`)."""
-    return (
-        bool(opts.compiled)
-        and opts.line_search == "residual"
-        and s.kink_pins is None
-        and s._ftrial is not None
-    )
-
-
 def solve_starts(s, P: np.ndarray, U0: np.ndarray, opts) -> list[SolveResult]:
     """Solve problem ``P[b] (n_p,)`` from ``U0[b] (n_u,)`` for every ``b``: per start the
     result of ``s.solve(P[b], U0[b], opts)``.
@@ -428,143 +394,6 @@ def solve_starts(s, P: np.ndarray, U0: np.ndarray, opts) -> list[SolveResult]:
         res = s._solve_once(P[b], U0[b], opts, s.backward, opts.max_iter, t0, once=run)
         out.append(s._restart(res, P[b], U0[b], opts, s.backward, t0))
     return out
-
-
-def _batch_functions(s):
-    """The solver's one-call trial over many starts (:class:`solvers.fast_ilq.
-    CompiledWideTrial`, else :class:`_MappedTrial`) and its compiled rollout mapped over
-    the starts (:class:`solvers.batch.BatchFunction`); built once per compiled solver."""
-    fns = _BATCH_FNS.get(s._ftrial)
-    if fns is None:
-        from .. import fast_ilq
-        from ..batch import BatchFunction
-
-        trial = fast_ilq.wide_trial(s) or _MappedTrial(s)
-        fns = (trial, BatchFunction(s._croll.call.f))
-        _BATCH_FNS[s._ftrial] = fns
-    return fns
-
-
-#: unit roundoff of numpy's longdouble (2^-64 with x87 extended precision)
-_LD_U = float(np.finfo(np.longdouble).eps) / 2
-
-
-def _exact_sums(x: np.ndarray) -> np.ndarray:
-    """Row sums of ``x (m, n)`` (finite, >= 0) rounded once to float64, as ``math.fsum``.
-
-    The rows are summed pairwise in numpy's longdouble (zeros padded to ``2^d`` columns,
-    ``d`` levels of halves added): for terms >= 0 the result ``s`` is within ``d u S``
-    of the exact sum ``S`` (``u`` the longdouble's unit roundoff), so where both ends of
-    ``s -/+ 2 d u s`` round to the same float64, that float64 is the exactly rounded sum
-    (rounding is monotone). The other rows (a sum near a rounding boundary, or no wider
-    longdouble) take ``math.fsum``.
-    """
-    m, n = x.shape
-    out = np.zeros(m)
-    if not x.size:
-        return out
-    d = max(1, (n - 1).bit_length())
-    s = np.zeros((m, 1 << d), dtype=np.longdouble)
-    s[:, :n] = x
-    for _ in range(d):
-        h = s.shape[1] // 2
-        s = s[:, :h] + s[:, h:]
-    s = s[:, 0]
-    e = s * np.longdouble(2 * d * _LD_U)
-    lo, hi = (s - e).astype(np.float64), (s + e).astype(np.float64)
-    sure = lo == hi
-    out[sure] = lo[sure]
-    for j in np.nonzero(~sure)[0]:
-        out[j] = math.fsum(x[j].tolist())
-    return out
-
-
-class _MappedTrial:
-    """The compiled one-call trial mapped over the starts (a
-    :class:`solvers.batch.BatchFunction`), with the per-start stats of
-    :class:`solvers.fast_ilq.CompiledWideTrial` from :func:`solvers.fast_ilq.trial_stats`."""
-
-    def __init__(self, s):
-        from ..batch import BatchFunction
-
-        self.s, self.f = s, BatchFunction(s._ftrial.call)
-        self._in: list = []
-
-    def inputs(self, m: int) -> list[np.ndarray]:
-        f = self.f.f
-        self._in = [np.zeros((m, f.nnz_in(i))) for i in range(f.n_in())]
-        return self._in
-
-    def run(self, m: int) -> list[np.ndarray]:
-        from ..fast_ilq import trial_stats
-
-        X, U, PA, mu, r = self.f(*self._in)
-        return [X, U, PA, mu, r, trial_stats(self.s, X, U, PA, r)]
-
-
-class _Evaluation:
-    """The one-call trials of the pending starts ``idx`` (``m`` of them), evaluated in one
-    call for all, and their linearizations as :meth:`SolveOnce.linearize` computes them:
-    ``X (m, K+1, nx)``, ``U``, ``PA``, ``mu``, ``r`` (residual rows), ``res``, ``merit``
-    and ``good`` (a trial's trajectory is finite and inside the trust region)."""
-
-    def __init__(self, bs: BatchSolve, idx: list[int]):
-        s, opts = bs.s, bs.opts
-        K, nx, nu, nxs, N = s.K, s.nx, s.nu, s.nxs, s.N
-        ia = np.asarray(idx, dtype=np.intp)
-        m, B = ia.size, bs.B
-        trial = np.array([bs.phase[b] == _TRIAL for b in idx])
-        i_x0, i_X, i_U, i_PA, i_eps, i_p, i_mu, i_d = bs.trial.inputs(m)
-        np.take(bs.x0, ia, axis=0, out=i_x0)
-        np.take(bs.X.reshape(B, -1), ia, axis=0, out=i_X)
-        np.take(bs.U.reshape(B, -1), ia, axis=0, out=i_U)
-        np.take(bs.PA.reshape(B, -1), ia, axis=0, out=i_PA)
-        i_PA[~trial] = 0.0  # a linearization at (Xbar, Ubar): a rollout with P = 0, eps = 0
-        i_eps[:, 0] = [bs.eps[b] if t else 0.0 for b, t in zip(idx, trial, strict=True)]
-        np.take(bs.P, ia, axis=0, out=i_p)
-        mu = i_mu[:, 0]
-        mu[:] = [bs.mu_run[b] for b in idx]
-        i_d.fill(bs.delta)
-        Xr, P = i_X.reshape(m, K + 1, nx), i_p
-        outs = bs.trial.run(m)
-        self.X = outs[0].reshape(m, K + 1, nx)
-        self.U = outs[1].reshape(m, K, nu)
-        self.PA = outs[2].reshape(m, K, nu, nxs + 1)
-        self.mu = outs[3].reshape(m, K, N)
-        self.r = outs[4]
-        st = outs[5]
-        ok, self.good, res, asum, c_ok = (
-            st[:, 0] != 0,
-            st[:, 1] != 0,
-            st[:, 2],
-            st[:, 3],
-            st[:, 4] != 0,
-        )
-        if opts.max_state_step < math.inf:
-            step = np.max(np.abs(self.X - Xr), axis=(1, 2))
-            self.good &= step <= opts.max_state_step
-        used = ~trial | self.good  # the linearizations an iteration reads
-        for j in np.nonzero(used & ~ok)[0]:  # a singular stage: as CompiledTrial does
-            s._ftrial.quad(self.X[j], self.U[j], P[j])  # fills Lam and Phi
-            self.PA[j], self.mu[j], ok[j] = s._numpy_backward(float(mu[j]), bs.delta)
-            res[j], asum[j] = float(np.max(np.abs(self.PA[j][:, :, -1]))), math.nan
-        # C = 1/2 member @ r2 is finite when r2 is and sums far below overflow; the
-        # others as SolveOnce.linearize computes them
-        for j in np.nonzero(used & ~c_ok)[0]:
-            c_ok[j] = bool(np.isfinite(0.5 * (bs.member @ (self.r[j] * self.r[j]))).all())
-        finite = ok & np.isfinite(res) & c_ok
-        self.res = np.where(finite, res, math.inf)
-        # merit RMS(a), with the exactly rounded sum of a*a (as SolveOnce.linearize)
-        rows = np.nonzero(finite & used)[0]
-        sums = asum[rows]
-        redo = np.isnan(sums)
-        if redo.any():
-            a = self.PA[rows[redo]][..., -1].reshape(int(redo.sum()), -1)
-            sums[redo] = _exact_sums(a * a)
-        self.merit = np.full(m, math.inf)
-        self.merit[rows] = np.sqrt(sums / (K * nu))
-        # E = 1/2 |r|^2 per start (row sums equal numpy's sums of the single rows)
-        self.E = 0.5 * np.sum(self.r * self.r, axis=1)
 
 
 class BatchSolve:
