@@ -48,20 +48,30 @@ from torch import nn
 
 from epo_casadi.errors import SpecError
 
-__all__ = ["BACKBONES", "Encoder", "HistoryTransformer", "lane_features"]
+__all__ = ["BACKBONES", "NORMS", "Encoder", "HistoryTransformer", "lane_features", "mlp"]
 
 #: backbone names (``ModelConfig.backbone``) and their table labels
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
 
 
+#: values of :func:`mlp`'s ``norm``
+NORMS = (None, "layer", "batch")
+
+
 def mlp(i: int, width: int, o: int, norm: str | None = None, layers: int = 3) -> nn.Sequential:
-    """``layers`` linear layers of ``width`` with ReLU (and LayerNorm with ``norm="layer"``)."""
+    """``layers`` linear layers of ``width`` with ReLU, each hidden one followed by LayerNorm
+    (``norm="layer"``) or BatchNorm1d (``norm="batch"``: the input is ``(rows, i)``) before
+    its ReLU, or by nothing (``None``)."""
+    if norm not in NORMS:
+        raise SpecError("norm", f"expected one of {NORMS}, got {norm!r}")
     mods: list[nn.Module] = []
     d = i
     for _ in range(layers - 1):
         mods.append(nn.Linear(d, width))
         if norm == "layer":
             mods.append(nn.LayerNorm(width))
+        elif norm == "batch":
+            mods.append(nn.BatchNorm1d(width))
         mods.append(nn.ReLU())
         d = width
     mods.append(nn.Linear(d, o))

@@ -159,7 +159,7 @@ def method_label(cfg: ModelConfig | None) -> str:
     Runs with one label are one table row, so every setting that makes ours another method
     is in it: the ablations, another number of LM steps than the paper's 2, decoded goals,
     the implicit backward pass, another collision reach, the current lane as every mode's
-    path where the goals are decoded candidates.
+    path where the goals are decoded candidates, an agent-weight decoder without batch norm.
     """
     if cfg is None:
         return "CV"
@@ -180,6 +180,8 @@ def method_label(cfg: ModelConfig | None) -> str:
             label += f" (collision margin {cfg.collision_margin:g} m)"
         if cfg.lane_path != "goal" and cfg.goal_decoder == "candidates":
             label += " (current-lane path)"  # runs saved before lane_path (learning.models)
+        if cfg.own_norm != ModelConfig.own_norm:
+            label += " (no own batch norm)"  # runs saved before own_norm (learning.models)
     return label
 
 

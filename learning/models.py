@@ -29,7 +29,7 @@ transformer in the agent's own frame. The encoders live in :mod:`learning.backbo
 
 Predictors (:func:`build_model`):
 
-- ``"epo"`` (ours): an agent-weight decoder (per agent, shared, positive), an
+- ``"epo"`` (ours): an agent-weight decoder (per agent, shared, positive, batch norm), an
   interaction-weight decoder (all agents' features), an initial-strategy decoder (per
   agent, shared) feed the differentiable game layer (:mod:`learning.layer`), which runs
   ``S`` LM steps on all ``B x M`` problems; a scene-probability decoder reads
@@ -54,11 +54,12 @@ Padded agents (scene ``agents_mask`` ``(B, N)`` False; :mod:`learning.masks`)
     weights and the weights of every pair it is in are 0, so it adds no residual and no
     collision pair; its initial strategy is 0 and, with every column of ``J`` that belongs
     to it zero, the layer's damped steps leave it at 0: the pad stays at rest at its
-    neutral position. The goal decoder runs on the real agents only (its batch norm never
-    sees a pad); a pad's goals are its position. + SC: a pad's controls are 0. V-LSTM: a
-    pad's trajectory is its position, its mode logits 0. The decoders that read all
-    agents at once (the pair-weight decoder, the scene-probability decoder) see for a pad
-    a zero feature and zero displacements: a constant, whatever the pad's recorded values.
+    neutral position. The goal and agent-weight decoders run on the real agents only (their
+    batch norm never sees a pad); a pad's goals are its position. + SC: a pad's controls
+    are 0. V-LSTM: a pad's trajectory is its position, its mode logits 0. The decoders
+    that read all agents at once (the pair-weight decoder, the scene-probability decoder)
+    see for a pad a zero feature and zero displacements: a constant, whatever the pad's
+    recorded values.
     Without a pad (no ``agents_mask``, or all True) every number is the one computed
     without the mask.
 """
@@ -92,6 +93,7 @@ __all__ = [
     "ModelConfig",
     "SIZE_LIMITS",
     "LAYER_BACKENDS",
+    "OWN_NORMS",
     "EXECUTION_SETTINGS",
     "layer_execution",
     "build_model",
@@ -104,6 +106,8 @@ __all__ = [
 ]
 
 
+#: values of ``ModelConfig.own_norm``
+OWN_NORMS = ("batch", "none")
 #: values of ``ModelConfig.layer_backend``
 LAYER_BACKENDS = ("auto", "fused", "structured", "dense")
 #: model settings that choose how the layer computes, not what: a run may resume with others
@@ -197,6 +201,11 @@ class ModelConfig:
     #: the scene has no ``goal_lane``) or "current" (the scene's ``paths`` for every mode).
     #: Runs saved before the field existed load as "current" (what they were trained with).
     lane_path: str = "goal"
+    #: ours: normalization of the agent-weight decoder's hidden layers: "batch" (paper
+    #: App. F: "the goal, agent weight, and scene probability decoder use batch
+    #: normalization"; run on the real agents only, like the goal decoder) or "none".
+    #: Runs saved before the field existed were trained with "none".
+    own_norm: str = "batch"
 
     def __post_init__(self):
         if self.kind not in ("epo", "sc", "vlstm", "tgl"):
@@ -259,6 +268,11 @@ class ModelConfig:
             raise SpecError(
                 "model.lane_path", f"expected 'goal' or 'current', got {self.lane_path!r}"
             )
+        if self.own_norm not in OWN_NORMS:
+            raise SpecError(
+                "model.own_norm",
+                f"expected one of {', '.join(map(repr, OWN_NORMS))}, got {self.own_norm!r}",
+            )
         for k in ("learned_init", "goal_features"):
             check_bool(f"model.{k}", getattr(self, k))
 
@@ -267,6 +281,20 @@ class ModelConfig:
 
 
 mlp = _backbones.mlp  # one MLP builder for the encoders and the decoders
+
+
+def on_rows(net: nn.Module, inp: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    """``net`` on the rows ``rows`` (bool, ``(len(inp),)``) of ``inp`` ``(R, d)``, zeros on
+    the others (None or all True: every row, the same numbers as ``net(inp)``). A batch
+    norm in ``net`` then counts only those rows; in training with fewer than two of them
+    (batch norm needs two) it runs on every row."""
+    if rows is None or bool(rows.all()):
+        return net(inp)
+    idx = torch.nonzero(rows).flatten()
+    if net.training and len(idx) < 2:
+        return net(inp)
+    out = net(inp[idx])
+    return out.new_zeros(inp.shape[0], out.shape[1]).index_copy(0, idx, out)
 
 
 # The observation encoders (V-LSTM, VIBES, HiVT-M) live in learning.backbones.
@@ -387,14 +415,8 @@ class GoalDecoder(nn.Module):
 
     def _net(self, inp: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
         """The MLP on the rows ``rows`` (bool, ``(len(inp),)``) of ``inp``, zeros on the others
-        (None: every row). Batch norm then counts only those rows."""
-        if rows is None:
-            return self.net(inp)
-        idx = torch.nonzero(rows).flatten()
-        if self.training and len(idx) < 2:  # batch norm needs two rows: pads are constants
-            return self.net(inp)
-        out = self.net(inp[idx])
-        return out.new_zeros(inp.shape[0], out.shape[1]).index_copy(0, idx, out)
+        (None: every row; :func:`on_rows`). Batch norm then counts only those rows."""
+        return on_rows(self.net, inp, rows)
 
     def forward(self, scene: dict, z: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
         """``mask`` ``(B, N)`` (None: every agent real): the MLP runs on the real agents'
@@ -490,7 +512,8 @@ class EPOModel(_Base):
             )
         self.goal_dec = GoalDecoder(cfg) if cfg.goal_decoder != "given" else None
         W, M, w = cfg.global_width, cfg.modes, cfg.dec_width
-        self.own_dec = nn.Sequential(mlp(W, w, M * self.n_own), nn.Softplus())
+        norm = "batch" if cfg.own_norm == "batch" else None
+        self.own_dec = nn.Sequential(mlp(W, w, M * self.n_own, norm=norm), nn.Softplus())
         self.pair_dec = nn.Sequential(
             mlp(self.N * W, w, M * len(self.pair_idx), norm="layer"), nn.Softplus()
         )
@@ -510,6 +533,21 @@ class EPOModel(_Base):
             )
         self.layer = GameLayer(game, opts, backward=cfg.backward, compiled=compiled)
         self.register_buffer("base_params", torch.as_tensor(L.defaults()), persistent=False)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """:meth:`torch.nn.Module.load_state_dict`; weights of an agent-weight decoder without
+        batch norm (runs saved before ``ModelConfig.own_norm`` existed) into one with it are
+        refused with one line naming the setting (a ``RuntimeError``, as for any misfit)."""
+        if (
+            self.cfg.own_norm == "batch"
+            and "own_dec.0.2.weight" in state_dict
+            and "own_dec.0.1.weight" not in state_dict
+        ):
+            raise RuntimeError(
+                "agent-weight decoder saved without batch norm (a run from before "
+                "model.own_norm): build the model with own_norm 'none'"
+            )
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def decode_goals(self, scene: dict, z: torch.Tensor) -> dict:
         """Goals ``(B, M, N, 2)`` of every mode: the scene's, or the goal decoder's (and its
@@ -574,7 +612,12 @@ class EPOModel(_Base):
                 per_mode = goal_paths(scene, goal_index, size).to(z.dtype)  # (B, N, M, size)
                 for i, a in enumerate(names):
                     p[..., L[f"path.{a}"].slice] = per_mode[:, i]
-        w_own = self.own_dec(z).reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
+        if self.cfg.own_norm == "none":
+            w_own = self.own_dec(z)
+        else:  # batch norm over the real agents' rows (a pad's row is 0, then masked)
+            rows = None if mask is None else mask.reshape(B * N)
+            w_own = on_rows(self.own_dec, z.reshape(B * N, -1), rows)
+        w_own = w_own.reshape(B, N, M, self.n_own).permute(0, 2, 1, 3).reshape(B, M, -1)
         w_pair = self.pair_dec(z.reshape(B, -1)).reshape(B, M, -1)
         if mask is not None:  # a pad: no residual, no collision pair
             zero = torch.zeros((), dtype=z.dtype, device=z.device)

@@ -103,6 +103,9 @@ class TrainConfig:
                 if key == "model" and "lane_path" not in sub:
                     # saved before ModelConfig.lane_path existed: ours used the current lane
                     sub = {**sub, "lane_path": "current"}
+                if key == "model" and "own_norm" not in sub:
+                    # saved before ModelConfig.own_norm existed: no batch norm in own_dec
+                    sub = {**sub, "own_norm": "none"}
                 d[key] = klass(**sub)
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - names)
