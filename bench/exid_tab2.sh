@@ -36,22 +36,7 @@ train() {  # name model backbone seed lr [extra args]
   log "end $name rc=$rc"
 }
 choose() {  # group -> the rate with the lowest best-epoch val minSADE among its seed-0 runs
-  # (under a lock: two drivers on disjoint MODELS / BACKBONES may share RUNS)
-  flock "$R/chosen.lock" "$PY" - "$R" "$1" "$E" <<'PY'
-import csv, glob, sys
-R, group, epochs = sys.argv[1], sys.argv[2], int(sys.argv[3])
-best = {}
-for d in glob.glob(f"{R}/{group}-lr*-s0"):
-    rows = list(csv.DictReader(open(f"{d}/metrics.csv")))
-    if len(rows) >= epochs:
-        best[d.rsplit("-lr", 1)[1][: -len("-s0")]] = min(float(r["val_minSADE"]) for r in rows)
-lr = min(best, key=best.get)
-rows = [r for r in csv.reader(open(f"{R}/chosen.csv"))] if glob.glob(f"{R}/chosen.csv") else []
-rows = [r for r in rows if r[0] != group]
-rows.append([group, lr, ";".join(f"{k}:{v:.4f}" for k, v in sorted(best.items()))])
-csv.writer(open(f"{R}/chosen.csv", "w", newline="")).writerows(rows)
-print(lr)
-PY
+  flock "$R/chosen.lock" "$PY" "$ROOT/bench/choose_lr.py" "$R" "$1" "$E"  # two drivers may share RUNS
 }
 group() {  # model backbone grid... (extra train args in EXTRA)
   local model=$1 bb=$2 g=$1-$2; shift 2
