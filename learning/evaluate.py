@@ -288,12 +288,8 @@ class EvalReport:
             "minSADE/minSFDE/OR joint; metres; lower is better; mean ± std (ddof 1) over runs. "
             f"{orule}.",
             "",
-            "| Method | runs | " + " | ".join(names) + " |",
-            "|---|---:|" + "---:|" * len(names),
+            *self._table(names, names),
         ]
-        for label, rs in self.groups():
-            cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in names]
-            lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
         lines += self._init_table()
         return "\n".join(lines) + "\n" + "".join("\n" + sub.markdown() for sub in self.subsets)
 
@@ -309,13 +305,21 @@ class EvalReport:
             "layer's S steps; the modes ranked by the same scene probabilities), the same "
             "metrics:",
             "",
+            *self._table(names, init, only_with=True),
+        ]
+        return lines
+
+    def _table(self, names, keys, only_with: bool = False) -> list[str]:
+        """Header and one row per method: columns ``names``, cells ``mean ± std`` of the
+        metrics ``keys`` over its runs; ``only_with``: methods with none of ``keys`` left out."""
+        lines = [
             "| Method | runs | " + " | ".join(names) + " |",
             "|---|---:|" + "---:|" * len(names),
         ]
         for label, rs in self.groups():
-            if not any(k in r.metrics for r in rs for k in init):
+            if only_with and not any(k in r.metrics for r in rs for k in keys):
                 continue
-            cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in init]
+            cells = [format_mean_std([r.metrics.get(k, math.nan) for r in rs]) for k in keys]
             lines.append(f"| {label} | {len(rs)} | " + " | ".join(cells) + " |")
         return lines
 
