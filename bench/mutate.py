@@ -61,6 +61,7 @@ TARGETS: dict[str, list[str]] = {
     "solvers/gn.py": ["tests/test_lm.py", "tests/test_structured.py"],
     "solvers/structured.py": ["tests/test_structured.py"],
     "solvers/nash.py": ["tests/test_nash.py"],
+    "solvers/nash_types.py": ["tests/test_nash.py"],
     "solvers/multimodal.py": ["tests/test_multimodal.py"],
     "solvers/result.py": ["tests/test_result.py"],
     "solvers/ipopt.py": ["tests/test_ipopt.py"],
@@ -71,10 +72,27 @@ TARGETS: dict[str, list[str]] = {
             "tests/test_ilq_regularization.py",
             "tests/test_options.py",
         ]
-        for m in ("options", "quadratize", "riccati", "rollout", "iteration", "kinks", "solver")
+        for m in (
+            "options",
+            "quadratize",
+            "riccati",
+            "rollout",
+            "iteration",
+            "step_rules",
+            "batch_trial",
+            "kinks",
+            "solver",
+        )
+    },
+    **{
+        f"solvers/control/{m}.py": ["tests/test_safety_filter.py"]
+        for m in ("safety", "safety_options", "safety_geometry", "safety_filter")
     },
     "solvers/batch.py": ["tests/test_lm.py"],
-    "epo_casadi/game.py": ["tests/test_game.py", "tests/test_gamefile.py"],
+    **{
+        f"epo_casadi/{m}.py": ["tests/test_game.py", "tests/test_gamefile.py"]
+        for m in ("game", "game_spec", "game_params", "game_size")
+    },
     "epo_casadi/features.py": ["tests/test_game.py", "tests/test_goals.py"],
     "epo_casadi/dynamics.py": ["tests/test_game.py"],
     "epo_casadi/errors.py": ["tests/test_game.py", "tests/test_gamefile.py"],
