@@ -174,3 +174,22 @@ def test_oracle_warm_start_is_the_shifted_previous_solution():
     for a, b in zip(prev, warm, strict=True):
         np.testing.assert_array_equal(b[:-1], a[1:])
         np.testing.assert_array_equal(b[-1], a[-1])
+
+
+def test_inscribed_circles_lie_in_the_footprint_and_reach_its_ends():
+    from solvers.control.plan import inscribed_circles
+
+    off, r = inscribed_circles((5.0, 2.0))
+    assert (off, r) == (1.5, 1.0)
+    # every point of the two circles is inside the 5 m x 2 m rectangle, and the front and
+    # rear ends and the sides at the centres touch a circle (the stadium inscribed in it)
+    a = np.linspace(0.0, 2 * np.pi, 721)
+    for s in (1.0, -1.0):
+        x, y = s * off + r * np.cos(a), r * np.sin(a)
+        assert np.all(np.abs(x) <= 2.5 + 1e-12) and np.all(np.abs(y) <= 1.0 + 1e-12)
+    for p in ((2.5, 0.0), (-2.5, 0.0), (1.5, 1.0), (-1.5, -1.0)):
+        assert min(np.hypot(p[0] - s * off, p[1]) for s in (1, -1)) == pytest.approx(r)
+    with pytest.raises(SpecError, match="world.footprint.length"):
+        inscribed_circles((1.0, 2.0))  # shorter than wide
+    with pytest.raises(SpecError, match="world.footprint"):
+        inscribed_circles("5x2")

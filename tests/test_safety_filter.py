@@ -16,7 +16,7 @@ from scipy.stats import norm
 from epo_casadi.errors import SpecError
 from scenarios.closed_loop import SimConfig, run_episode, summarize
 from scenarios.closed_loop.metrics import filter_metrics
-from solvers.control.safety import SafetyFilter, SafetyOptions, footprint_circles
+from solvers.control.safety import SafetyFilter, SafetyOptions, covering_circles
 from solvers.control.track import speed_floor
 from solvers.control.types import AgentTask, Command, Estimate, Observation, Plan
 from solvers.control.vehicle import VehicleModel
@@ -399,7 +399,7 @@ def test_a_car_of_unknown_heading_is_kept_off_in_every_heading():
 
 
 def test_footprints_and_options():
-    off, r = footprint_circles(5.0, 2.0)
+    off, r = covering_circles(5.0, 2.0)
     assert off == 1.25 and r == pytest.approx(math.sqrt(1.25**2 + 1.0))
     # the two circles cover the rectangle: every corner and side midpoint within r
     for p in ((2.5, 1.0), (0.0, 1.0), (-2.5, -1.0), (1.25, -1.0)):

@@ -137,7 +137,7 @@ from .plan_game import _circles as _circles
 from .plan_game import agent_name as agent_name
 from .plan_geometry import _SLOWING_DROP as _SLOWING_DROP
 from .plan_geometry import _SLOWING_WINDOW as _SLOWING_WINDOW
-from .plan_geometry import _project, footprint_circles, passing_order, path_window, stop_not_reverse
+from .plan_geometry import _project, inscribed_circles, passing_order, path_window, stop_not_reverse
 from .plan_geometry import _resample as _resample
 from .plan_geometry import _speed_change as _speed_change
 from .plan_geometry import _straight as _straight
@@ -153,7 +153,7 @@ __all__ = [
     "ConstantVelocityPlanner",
     "FootprintCollision",
     "build_game",
-    "footprint_circles",
+    "inscribed_circles",
     "passing_order",
     "path_window",
     "stop_not_reverse",

@@ -20,7 +20,7 @@ from epo_casadi.errors import check_number
 from epo_casadi.features import PairFeature, smooth_distance
 from epo_casadi.game import AgentSpec, GameSpec, PotentialGame
 
-from .plan_geometry import footprint_circles
+from .plan_geometry import inscribed_circles
 from .plan_options import PlannerOptions
 
 #: (feature type, option holding its weight), the order of the residual blocks
@@ -101,7 +101,7 @@ def build_game(radii, dt: float, options: PlannerOptions, footprint=None) -> Pot
     radii = tuple(float(r) for r in np.asarray(radii, dtype=float).reshape(-1))
     offset = None
     if footprint is not None:
-        offset, r = footprint_circles(footprint)
+        offset, r = inscribed_circles(footprint)
         radii = (r,) * len(radii)
     key = (radii, float(dt), options, offset)
     game = _GAMES.get(key)

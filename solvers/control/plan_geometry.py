@@ -1,7 +1,7 @@
 """Geometry shared by the planners of :mod:`solvers.control.plan` and their checks.
 
 Plain numpy on positions and polylines: the unicycle rollout that never reverses
-(:func:`stop_not_reverse`), the two circles of a car's footprint (:func:`footprint_circles`),
+(:func:`stop_not_reverse`), the two circles inscribed in a car's footprint (:func:`inscribed_circles`),
 the speed drop that says an agent brakes to yield (``_speed_change``), projection onto and
 resampling of a polyline, the passing order of a joint future (:func:`passing_order`), the
 lane window of an agent (:func:`path_window`) and the straight path of a constant-velocity
@@ -37,7 +37,7 @@ def stop_not_reverse(x0: np.ndarray, U: np.ndarray, dt: float) -> tuple[np.ndarr
     return X, U
 
 
-def footprint_circles(footprint) -> tuple[float, float]:
+def inscribed_circles(footprint) -> tuple[float, float]:
     """``(offset, radius)`` of the planners' two circles of a ``(length, width)`` car:
     centres ``+-(length - width) / 2`` along the heading, radius ``width / 2`` (the stadium
     inscribed in its rectangle, :mod:`solvers.control.plan`)."""

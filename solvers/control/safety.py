@@ -33,7 +33,7 @@ independent check)
       estimated heading drifts by a right angle) it is the disc of radius ``rho + r``,
       ``rho = sqrt(a^2 + b^2)``, that holds every heading.
 
-Bodies (:func:`body_shapes`, :func:`footprint_circles`): from the world's ``footprint``
+Bodies (:func:`body_shapes`, :func:`covering_circles`): from the world's ``footprint``
 ``(length, width)`` (the highway-env worlds' 5 m x 2 m cars). ``shape="box"`` (default):
 the ego is its four corners (``r_0 = 0``) and every other car its rectangle; ``"circles"``:
 two circles per car, at ``+-length / 4`` along the heading with radius ``sqrt((length /
@@ -132,7 +132,7 @@ from .safety_geometry import _sample as _sample
 from .safety_geometry import _steer_scalar as _steer_scalar
 from .safety_geometry import _wrap as _wrap
 from .safety_geometry import body_shapes as body_shapes
-from .safety_geometry import footprint_circles as footprint_circles
+from .safety_geometry import covering_circles as covering_circles
 from .safety_geometry import world_footprints as world_footprints
 from .safety_options import _CV_HEADING_STD as _CV_HEADING_STD
 from .safety_options import _CV_SPEED_STD as _CV_SPEED_STD
@@ -148,7 +148,7 @@ from .safety_options import SafetyOptions as SafetyOptions
 __all__ = [
     "SafetyOptions",
     "SafetyFilter",
-    "footprint_circles",
+    "covering_circles",
     "world_footprints",
     "body_shapes",
     "SHAPES",

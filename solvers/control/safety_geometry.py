@@ -1,5 +1,5 @@
 """Geometry of the safety filter of :mod:`solvers.control.safety`: the footprint circles of a
-car (:func:`footprint_circles`, :func:`world_footprints`), the bodies the collision constraints
+car (:func:`covering_circles`, :func:`world_footprints`), the bodies the collision constraints
 use (:func:`body_shapes`), the constant-velocity prediction of an unconverged track (``_cv``),
 the sampling of a plan on the filter's grid (``_sample``), the unicycle rollout with the
 tracker's steering as a CasADi function (``_rollout_function``) and the lane path the filter
@@ -21,7 +21,7 @@ from .vehicle import VehicleModel
 
 
 # ====================================================================== footprints
-def footprint_circles(length: float, width: float) -> tuple[float, float]:
+def covering_circles(length: float, width: float) -> tuple[float, float]:
     """``(offset, radius)`` of the two equal circles at ``+-offset`` along the heading that
     cover a ``length x width`` rectangle: ``length / 4`` and
     ``sqrt((length / 4)^2 + (width / 2)^2)`` (the smallest such pair)."""
@@ -46,7 +46,7 @@ def world_footprints(world) -> np.ndarray:
             raise SpecError(
                 "world.footprint", f"expected (length, width) in m, got {size!r}"
             ) from None
-        return np.tile(footprint_circles(length, width), (n, 1))
+        return np.tile(covering_circles(length, width), (n, 1))
     radii = np.asarray(world.radii, dtype=float).reshape(-1)
     if radii.shape != (n,) or not np.all(np.isfinite(radii)) or np.any(radii <= 0):
         raise SpecError("world.radii", f"expected {n} positive radii, got {radii!r}")
@@ -60,7 +60,7 @@ def body_shapes(world, shape: str = "box") -> tuple[np.ndarray, float, np.ndarra
     half-length ``a`` (along its heading) and half-width ``b``. With the world's
     ``footprint`` ``(L, W)``: ``shape="box"``: the ego's four corners (``r_0 = 0``) and the
     others' rectangles ``(L/2, W/2, 0)``; ``"circles"``: the ego's two circles
-    (:func:`footprint_circles`) and the convex hull of each other's two circles (a stadium,
+    (:func:`covering_circles`) and the convex hull of each other's two circles (a stadium,
     ``(L/4, 0, sqrt((L/4)^2 + (W/2)^2))``, which holds both). Without a footprint every
     agent is the circle of its radius: the ego's centre with ``r_0``, ``(0, 0, r)``."""
     if shape not in SHAPES:
