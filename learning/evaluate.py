@@ -153,13 +153,16 @@ def parse_subset(text: str) -> Subset:
 BACKBONES = {"vlstm": "V-LSTM", "vibes": "VIBES", "hivt": "HiVT-M"}
 
 
-def method_label(cfg: ModelConfig | None) -> str:
+def method_label(cfg: ModelConfig | None, train=None) -> str:
     """Table label of a model: ``V-LSTM + Ours``, ``V-LSTM + SC``, ``V-LSTM``; ``CV`` for None.
 
     Runs with one label are one table row, so every setting that makes ours another method
     is in it: the ablations, another number of LM steps than the paper's 2, decoded goals,
     the implicit backward pass, another collision reach, the current lane as every mode's
     path where the goals are decoded candidates, an agent-weight decoder without batch norm.
+    With the run's ``train`` (:class:`~learning.train_config.TrainConfig`), also the training
+    loss where it is not the paper's for the model kind: other loss weights, or the
+    imitation term summed over the future steps instead of averaged.
     """
     if cfg is None:
         return "CV"
@@ -182,6 +185,14 @@ def method_label(cfg: ModelConfig | None) -> str:
             label += " (current-lane path)"  # runs saved before lane_path (learning.models)
         if cfg.own_norm != ModelConfig.own_norm:
             label += " (no own batch norm)"  # runs saved before own_norm (learning.models)
+    if train is not None:
+        from .train_config import PAPER_LOSS_WEIGHTS
+
+        w = train.loss_weights
+        if w != PAPER_LOSS_WEIGHTS[cfg.kind]:
+            label += f" (loss weights {w.imitation:g} / {w.goal:g} / {w.probability:g})"
+        if train.imitation_reduction != "mean":
+            label += f" (imitation: {train.imitation_reduction})"
     return label
 
 
@@ -473,7 +484,12 @@ def _evaluate(runs, data_dir, split, cv, batch_size, checkpoint, progress, subse
         for run in runs:
             model, cfg, ck = load_model(run, game, which=checkpoint)
             score(
-                model, str(run), method_label(cfg.model), cfg.model.kind, cfg.seed, int(ck["epoch"])
+                model,
+                str(run),
+                method_label(cfg.model, cfg),
+                cfg.model.kind,
+                cfg.seed,
+                int(ck["epoch"]),
             )
         if cv:
             score(ConstantVelocity(game.K, data.modes), "cv", "CV", "cv", None, None)

@@ -66,7 +66,7 @@ def _model_of(run_dir, game, n_modes: int, checkpoint: str):
     from .train import load_model
 
     model, cfg, _ = load_model(run_dir, game, which=checkpoint)
-    return model, method_label(cfg.model), cfg.model.kind
+    return model, method_label(cfg.model, cfg), cfg.model.kind
 
 
 def _real_agents(batch) -> np.ndarray:

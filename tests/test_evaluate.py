@@ -125,6 +125,24 @@ def test_method_labels():
         method_label(ModelConfig(**old)) == "V-LSTM + Ours (goals: candidates) (current-lane path)"
     )
     assert method_label(ModelConfig(kind="epo", lane_path="current")) == "V-LSTM + Ours"
+    # the training loss is part of the method where it is not the paper's for the kind
+    from learning.losses import LossWeights
+    from learning.train_config import PAPER_LOSS_WEIGHTS, TrainConfig
+
+    for kind in ("epo", "sc"):
+        m = ModelConfig(kind=kind)
+        base = method_label(m)
+        assert method_label(m, TrainConfig(model=m)) == base
+        paper = TrainConfig(model=m, loss=PAPER_LOSS_WEIGHTS[kind])
+        assert method_label(m, paper) == base
+    m = ModelConfig(kind="epo")
+    other = TrainConfig(model=m, loss=LossWeights(1.0, 1.0, 1.0), imitation_reduction="sum")
+    assert method_label(m, other) == "V-LSTM + Ours (loss weights 1 / 1 / 1) (imitation: sum)"
+    sc = ModelConfig(kind="sc")
+    assert (
+        method_label(sc, TrainConfig(model=sc, loss=PAPER_LOSS_WEIGHTS["epo"]))
+        == "V-LSTM + SC (loss weights 1 / 0.1 / 0.1)"
+    )
 
 
 @pytest.fixture(scope="module")
