@@ -409,39 +409,12 @@ class SafetyFilter:
         self._slots = slots
         self._y = None  # the last solution's duals (a warm start of the same structure)
 
-    def _solve_qp(self, ego: np.ndarray, Ubar: np.ndarray, Unom: np.ndarray, Xroll: np.ndarray):
-        """One QP linearized along ``(Xroll, Ubar)`` and warm-started there; its commands
-        ``(N, 2)`` or None, and OSQP's status."""
-        o, N, veh, nP = self.options, self.options.horizon, self.vehicle, self._np
-        Mc, J = self._obs.shape[:2]
-        slots = max(Mc * J, 1)
-        if self.solver is None or slots > self._slots:
-            self._setup(slots)
-        S = self._slots
-        Xbar = np.concatenate([ego[None], Xroll[:-1]])
-        xn, A, B = self._f(Xbar.T, Ubar.T)
-        xn = np.asarray(xn).T
-        A = np.asarray(A).reshape(4, N, 4).transpose(1, 0, 2)
-        B = np.asarray(B).reshape(4, N, 2).transpose(1, 0, 2)
-        c = xn - np.einsum("kij,kj->ki", A, Xbar) - np.einsum("kij,kj->ki", B, Ubar)
-        # x_{k+1} = F_k + G_k U (the linearized dynamics rolled out from the ego state)
-        F = np.empty((N, 4))
-        G = np.zeros((N, 4, 2 * N))
-        f, g = ego, np.zeros((4, 2 * N))
-        for k in range(N):  # sequential by nature (a recursion over the horizon)
-            f = A[k] @ f + c[k]
-            g = A[k] @ g
-            g[:, 2 * k : 2 * k + 2] += B[k]
-            F[k], G[k] = f, g
-        umin, umax = veh.bounds()
-        r = veh.rate_bounds(self.dt)
-        lo = np.full(self._m, -np.inf)
-        hi = np.full(self._m, np.inf)
-        lo[: 2 * N], hi[: 2 * N] = np.tile(umin, N), np.tile(umax, N)
-        lo[2 * N : 2 * N + 2], hi[2 * N : 2 * N + 2] = self.u_prev - r, self.u_prev + r
-        lo[2 * N + 2 : 4 * N], hi[2 * N + 2 : 4 * N] = np.tile(-r, N - 1), np.tile(r, N - 1)
-        floor = speed_floor(veh, self.dt, N, float(ego[2]), float(self.u_prev[0]))
-        lo[4 * N : 5 * N] = floor - F[:, 2]
+    def _collision_rows(self, Xroll: np.ndarray, Mc: int, J: int):
+        """``(coef, lb)``, ``(N, slots, P, 3)`` and ``(N, slots, P)``: the collision rows of the
+        QP linearized along the rollout ``Xroll`` (their coefficients on ``x, y, theta`` of
+        ``x_{k+1}``, their lower bounds; unused slots and rows of non-finite geometry are
+        ``0 >= -inf``)."""
+        o, N, nP, S = self.options, self.options.horizon, self._np, self._slots
         # collision rows (k, slot = m * J + j, ego point i): n' P_i(x_{k+1}) >= s(n) + r_0 +
         # margin + buffer, P_i(x) = p + R(theta) v_i linearized in theta at the rollout
         coef = np.zeros((N, S, nP, 3))
@@ -476,6 +449,42 @@ class SafetyFilter:
             ]
             coef[:, : Mc * J] = np.stack(parts, axis=-1)
             lb[:, : Mc * J] = np.where(valid, bound, -np.inf).transpose(tr).reshape(N, Mc * J, nP)
+        return coef, lb
+
+    def _solve_qp(self, ego: np.ndarray, Ubar: np.ndarray, Unom: np.ndarray, Xroll: np.ndarray):
+        """One QP linearized along ``(Xroll, Ubar)`` and warm-started there; its commands
+        ``(N, 2)`` or None, and OSQP's status."""
+        o, N, veh, nP = self.options, self.options.horizon, self.vehicle, self._np
+        Mc, J = self._obs.shape[:2]
+        slots = max(Mc * J, 1)
+        if self.solver is None or slots > self._slots:
+            self._setup(slots)
+        S = self._slots
+        Xbar = np.concatenate([ego[None], Xroll[:-1]])
+        xn, A, B = self._f(Xbar.T, Ubar.T)
+        xn = np.asarray(xn).T
+        A = np.asarray(A).reshape(4, N, 4).transpose(1, 0, 2)
+        B = np.asarray(B).reshape(4, N, 2).transpose(1, 0, 2)
+        c = xn - np.einsum("kij,kj->ki", A, Xbar) - np.einsum("kij,kj->ki", B, Ubar)
+        # x_{k+1} = F_k + G_k U (the linearized dynamics rolled out from the ego state)
+        F = np.empty((N, 4))
+        G = np.zeros((N, 4, 2 * N))
+        f, g = ego, np.zeros((4, 2 * N))
+        for k in range(N):  # sequential by nature (a recursion over the horizon)
+            f = A[k] @ f + c[k]
+            g = A[k] @ g
+            g[:, 2 * k : 2 * k + 2] += B[k]
+            F[k], G[k] = f, g
+        umin, umax = veh.bounds()
+        r = veh.rate_bounds(self.dt)
+        lo = np.full(self._m, -np.inf)
+        hi = np.full(self._m, np.inf)
+        lo[: 2 * N], hi[: 2 * N] = np.tile(umin, N), np.tile(umax, N)
+        lo[2 * N : 2 * N + 2], hi[2 * N : 2 * N + 2] = self.u_prev - r, self.u_prev + r
+        lo[2 * N + 2 : 4 * N], hi[2 * N + 2 : 4 * N] = np.tile(-r, N - 1), np.tile(r, N - 1)
+        floor = speed_floor(veh, self.dt, N, float(ego[2]), float(self.u_prev[0]))
+        lo[4 * N : 5 * N] = floor - F[:, 2]
+        coef, lb = self._collision_rows(Xroll, Mc, J)
         coef = coef.reshape(N, S * nP, 3)
         Gp = G[:, [0, 1, 3], :]  # (N, 3, 2N): x, y, theta
         lo[5 * N :] = (
