@@ -264,48 +264,11 @@ class NashChecker:
                 verdicts.append(Verdict.FAILS if fails else Verdict.PASSES)
                 decided.append(by or "stationarity only")
                 continue
-            tol_i = o.gap_tol * scale[i]
-            local = self._local_attempts(i, u, p, C[i], tol_i, scale[i], fallback=not fails)
-            statuses.append(local[0].status)
-            found = [t for t in local if C[i] - t.cost > tol_i]
-            finished = [t for t in local if t.converged]
-            searched = o.global_starts and not (found or fails)  # else already failing
-            starts = self._global_attempts(i, u, p, C[i], tol_i, scale[i]) if searched else []
-            if starts:
-                glob[i] = min((c for _, t in starts if np.isfinite(c := t.cost)), default=np.nan)
-            costs = [t.cost for t in local] + [t.cost for _, t in starts]
-            finite_costs = [c for c in costs if np.isfinite(c)]
-            if finite_costs:
-                br[i] = min(C[i], *finite_costs)
-            gap_i = C[i] - br[i]
-            found_global = [(s, t) for s, t in starts if C[i] - t.cost > tol_i]
-            if found or found_global:
-                gap_ok[i] = False
-                fails = True
-                if found:
-                    src = found[0].label
-                else:
-                    s, t = found_global[0]
-                    src = f"global start {s} ({'zero controls' if s == 0 else 'seeded draw'}), {t.label}"
-                why.append(
-                    f"a best response ({src}) lowers C_i by {gap_i:.3g} > gap_tol x (1 + "
-                    f"min(|C_i|, scale_cap)) = {tol_i:.3g}"
-                )
-                by = by or src
-            if fails:
-                verdicts.append(Verdict.FAILS)
-            elif finished:
-                verdicts.append(Verdict.PASSES)
-                by = finished[0].label
-            else:
-                gap_ok[i] = False
-                verdicts.append(Verdict.UNKNOWN)
-                tried = "; ".join(t.label for t in local)
-                why.append(
-                    f"best-response solve did not converge ({tried}) and found no gap: the "
-                    "gap is unknown"
-                )
-                by = "none (no best response finished)"
+            status, verdict, by, br[i], gap_ok[i], glob[i] = self._judge_agent(
+                i, u, p, C[i], scale[i], fails, why, by
+            )
+            statuses.append(status)
+            verdicts.append(verdict)
             reasons.append("; ".join(why))
             decided.append(by)
             bar.update(1)
@@ -333,6 +296,57 @@ class NashChecker:
             decided_by=tuple(decided),
             global_best_costs=glob,
         )
+
+    def _judge_agent(self, i, u, p, Ci, scale_i, fails, why, by):
+        """Agent ``i``'s best-response verdict (:meth:`certify`): ``(status, verdict,
+        decided_by, best_response_cost, gap_ok, global_best_cost)``; the reasons it finds are
+        appended to ``why``. ``fails``/``by``: what the first-order checks already decided."""
+        o = self.options
+        br_i, gap_ok_i, glob_i = Ci, True, np.nan
+        tol_i = o.gap_tol * scale_i
+        local = self._local_attempts(i, u, p, Ci, tol_i, scale_i, fallback=not fails)
+        found = [t for t in local if Ci - t.cost > tol_i]
+        finished = [t for t in local if t.converged]
+        searched = o.global_starts and not (found or fails)  # else already failing
+        starts = self._global_attempts(i, u, p, Ci, tol_i, scale_i) if searched else []
+        if starts:
+            glob_i = min((c for _, t in starts if np.isfinite(c := t.cost)), default=np.nan)
+        costs = [t.cost for t in local] + [t.cost for _, t in starts]
+        finite_costs = [c for c in costs if np.isfinite(c)]
+        if finite_costs:
+            br_i = min(Ci, *finite_costs)
+        gap_i = Ci - br_i
+        found_global = [(s, t) for s, t in starts if Ci - t.cost > tol_i]
+        if found or found_global:
+            gap_ok_i = False
+            fails = True
+            if found:
+                src = found[0].label
+            else:
+                s, t = found_global[0]
+                src = (
+                    f"global start {s} ({'zero controls' if s == 0 else 'seeded draw'}), {t.label}"
+                )
+            why.append(
+                f"a best response ({src}) lowers C_i by {gap_i:.3g} > gap_tol x (1 + "
+                f"min(|C_i|, scale_cap)) = {tol_i:.3g}"
+            )
+            by = by or src
+        if fails:
+            verdict = Verdict.FAILS
+        elif finished:
+            verdict = Verdict.PASSES
+            by = finished[0].label
+        else:
+            gap_ok_i = False
+            verdict = Verdict.UNKNOWN
+            tried = "; ".join(t.label for t in local)
+            why.append(
+                f"best-response solve did not converge ({tried}) and found no gap: the "
+                "gap is unknown"
+            )
+            by = "none (no best response finished)"
+        return local[0].status, verdict, by, br_i, gap_ok_i, glob_i
 
     def _local_attempts(self, i, u, p, Ci, tol_i, scale_i, fallback=True) -> list[_Attempt]:
         """Best responses from the candidate until one finishes or finds a gap: IPOPT,
