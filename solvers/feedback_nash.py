@@ -280,6 +280,104 @@ def _best_response_nlp(game: PotentialGame, prev: tuple[int, ...], i: int, opts)
     return game.cached(key, build)
 
 
+def _sampled_gains(game, costs, base, P, a, Q, opts):
+    """``(gain, evaluated, trials)``: per player the largest drop of its own cost over the
+    sampled deviations of its rows of the policy (``-inf`` where none had a finite cost),
+    how many deviations had a finite cost, and the number of rollouts."""
+    K, N = game.K, game.N
+    uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
+    rng = np.random.default_rng(opts.seed)
+    gain = np.full(N, -np.inf)
+    evaluated = np.zeros(N, dtype=int)  # deviations with a finite cost, per player
+    trials, na = 0, Q.shape[2]
+    for i in range(N):
+        rows = slice(int(uo[i]), int(uo[i + 1]))
+        dirs = []
+        for _ in range(opts.n_random):
+            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
+            dP[:, rows] = rng.standard_normal(P[:, rows].shape)
+            da[:, rows] = rng.standard_normal(a[:, rows].shape)
+            if na:  # drawn after P and a: without Q the directions are as before
+                dQ[:, rows] = rng.standard_normal(Q[:, rows].shape)
+            dirs.append((dP, da, dQ))
+        for _ in range(opts.n_coordinate):
+            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
+            da[rng.integers(K), int(uo[i]) + rng.integers(game.nu[i])] = 1.0
+            dirs.append((dP, da, dQ))
+        for dP, da, dQ in dirs:
+            for s in opts.scales:
+                for sign in (1.0, -1.0):
+                    c = costs(P + sign * s * dP, a + sign * s * da, Q + sign * s * dQ)
+                    trials += 1
+                    drop = base[i] - c[i] if np.isfinite(c[i]) else -np.inf
+                    evaluated[i] += bool(np.isfinite(c[i]))
+                    gain[i] = max(gain[i], drop)
+    return gain, evaluated, trials
+
+
+def _policy_inputs(game, gains, feedforward, gains_prev, prev_variables):
+    """``(P, a, Q, prev)``: the policy's arrays of :func:`feedback_nash_check`, their
+    shapes checked (one :class:`SpecError` naming the argument)."""
+    K, nx, nu = game.K, int(sum(game.nx)), int(sum(game.nu))
+    P = np.asarray(gains, float)
+    a = np.asarray(feedforward, float)
+    if P.shape != (K, nu, nx) or a.shape != (K, nu):
+        raise SpecError(
+            "gains/feedforward",
+            f"expected shapes ({K}, {nu}, {nx}) and ({K}, {nu}), got {P.shape} and {a.shape}",
+        )
+    if (gains_prev is None) != (prev_variables is None):
+        raise SpecError("gains_prev/prev_variables", "expected both or neither")
+    prev = np.zeros(0, int) if prev_variables is None else np.asarray(prev_variables)
+    if prev.ndim != 1 or (prev.size and not np.issubdtype(prev.dtype, np.integer)):
+        raise SpecError("prev_variables", f"expected a 1-d array of integers, got {prev!r}")
+    if prev.size and (prev.min() < 0 or prev.max() >= nu + nx):
+        raise SpecError("prev_variables", f"expected positions in 0..{nu + nx - 1}")
+    na = int(prev.size)
+    Q = np.zeros((K, nu, 0)) if gains_prev is None else np.asarray(gains_prev, float)
+    if Q.shape != (K, nu, na):
+        raise SpecError("gains_prev", f"expected shape ({K}, {nu}, {na}), got {Q.shape}")
+    return P, a, Q, prev
+
+
+def _agent_verdict(base_i, gain_i, limit_i, glob_i, glob_by_i, evaluated_i, global_starts):
+    """``(verdict, reason, decided_by)`` of one player (:func:`feedback_nash_check`): from
+    its cost under the policies, the largest sampled drop, its limit, the global best
+    responses' drop and source, and how many deviations had a finite cost."""
+    if not np.isfinite(base_i):
+        verdict = Verdict.FAILS
+        reason = "the cost under the policies is not finite"
+        by = "finite values"
+    elif gain_i > limit_i:
+        verdict = Verdict.FAILS
+        reason = (
+            f"a sampled deviation of its own policy lowers C_i by {gain_i:.3g} > tol "
+            f"(1 + |C_i|) = {limit_i:.3g}"
+        )
+        by = "sampled policy deviation"
+    elif np.isfinite(glob_i) and glob_i > limit_i:
+        verdict = Verdict.FAILS
+        reason = (
+            f"a best response against the others' policies ({glob_by_i}) lowers C_i by "
+            f"{glob_i:.3g} > tol (1 + |C_i|) = {limit_i:.3g}"
+        )
+        by = glob_by_i
+    elif evaluated_i == 0 and not np.isfinite(glob_i):
+        verdict = Verdict.UNKNOWN
+        reason = (
+            "no deviation could be evaluated (none tried, or every deviated rollout is "
+            "not finite): no evidence either way"
+        )
+        by = "none"
+    else:
+        verdict = Verdict.PASSES
+        reason = ""
+        by = "sampled policy deviations" + (
+            f" + {global_starts} global starts" if global_starts else ""
+        )
+    return verdict, reason, by
+
+
 def feedback_nash_check(
     game: PotentialGame,
     p: np.ndarray,
@@ -307,24 +405,8 @@ def feedback_nash_check(
     t0 = time.perf_counter()
     K, N = game.K, game.N
     nx, nu = int(sum(game.nx)), int(sum(game.nu))
-    P = np.asarray(gains, float)
-    a = np.asarray(feedforward, float)
-    if P.shape != (K, nu, nx) or a.shape != (K, nu):
-        raise SpecError(
-            "gains/feedforward",
-            f"expected shapes ({K}, {nu}, {nx}) and ({K}, {nu}), got {P.shape} and {a.shape}",
-        )
-    if (gains_prev is None) != (prev_variables is None):
-        raise SpecError("gains_prev/prev_variables", "expected both or neither")
-    prev = np.zeros(0, int) if prev_variables is None else np.asarray(prev_variables)
-    if prev.ndim != 1 or (prev.size and not np.issubdtype(prev.dtype, np.integer)):
-        raise SpecError("prev_variables", f"expected a 1-d array of integers, got {prev!r}")
-    if prev.size and (prev.min() < 0 or prev.max() >= nu + nx):
-        raise SpecError("prev_variables", f"expected positions in 0..{nu + nx - 1}")
+    P, a, Q, prev = _policy_inputs(game, gains, feedforward, gains_prev, prev_variables)
     na = int(prev.size)
-    Q = np.zeros((K, nu, 0)) if gains_prev is None else np.asarray(gains_prev, float)
-    if Q.shape != (K, nu, na):
-        raise SpecError("gains_prev", f"expected shape ({K}, {nu}, {na}), got {Q.shape}")
     X, U = to_stages(game, np.asarray(states, float), np.asarray(controls, float))
     f = _closed_loop(game, tuple(int(v) for v in prev))
     p = np.asarray(p, float).reshape(-1)
@@ -335,33 +417,7 @@ def feedback_nash_check(
         return np.asarray(f(p, Xr, Ur, Pf, am.T, Qf), float).ravel()
 
     base = costs(P, a, Q)
-    uo = np.concatenate([[0], np.cumsum(game.nu)]).astype(int)
-    rng = np.random.default_rng(opts.seed)
-    gain = np.full(N, -np.inf)
-    evaluated = np.zeros(N, dtype=int)  # deviations with a finite cost, per player
-    trials = 0
-    for i in range(N):
-        rows = slice(int(uo[i]), int(uo[i + 1]))
-        dirs = []
-        for _ in range(opts.n_random):
-            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
-            dP[:, rows] = rng.standard_normal(P[:, rows].shape)
-            da[:, rows] = rng.standard_normal(a[:, rows].shape)
-            if na:  # drawn after P and a: without Q the directions are as before
-                dQ[:, rows] = rng.standard_normal(Q[:, rows].shape)
-            dirs.append((dP, da, dQ))
-        for _ in range(opts.n_coordinate):
-            dP, da, dQ = np.zeros_like(P), np.zeros_like(a), np.zeros_like(Q)
-            da[rng.integers(K), int(uo[i]) + rng.integers(game.nu[i])] = 1.0
-            dirs.append((dP, da, dQ))
-        for dP, da, dQ in dirs:
-            for s in opts.scales:
-                for sign in (1.0, -1.0):
-                    c = costs(P + sign * s * dP, a + sign * s * da, Q + sign * s * dQ)
-                    trials += 1
-                    drop = base[i] - c[i] if np.isfinite(c[i]) else -np.inf
-                    evaluated[i] += bool(np.isfinite(c[i]))
-                    gain[i] = max(gain[i], drop)
+    gain, evaluated, trials = _sampled_gains(game, costs, base, P, a, Q, opts)
     gain = np.where(np.isfinite(gain), gain, 0.0)
     limit = opts.tol * (1.0 + np.abs(base))
     glob = np.full(N, np.nan)
@@ -380,38 +436,12 @@ def feedback_nash_check(
                 )
     verdicts, reasons, decided = [], [], []
     for i in range(N):
-        if not np.isfinite(base[i]):
-            verdicts.append(Verdict.FAILS)
-            reasons.append("the cost under the policies is not finite")
-            decided.append("finite values")
-        elif gain[i] > limit[i]:
-            verdicts.append(Verdict.FAILS)
-            reasons.append(
-                f"a sampled deviation of its own policy lowers C_i by {gain[i]:.3g} > tol "
-                f"(1 + |C_i|) = {limit[i]:.3g}"
-            )
-            decided.append("sampled policy deviation")
-        elif np.isfinite(glob[i]) and glob[i] > limit[i]:
-            verdicts.append(Verdict.FAILS)
-            reasons.append(
-                f"a best response against the others' policies ({glob_by[i]}) lowers C_i by "
-                f"{glob[i]:.3g} > tol (1 + |C_i|) = {limit[i]:.3g}"
-            )
-            decided.append(glob_by[i])
-        elif evaluated[i] == 0 and not np.isfinite(glob[i]):
-            verdicts.append(Verdict.UNKNOWN)
-            reasons.append(
-                "no deviation could be evaluated (none tried, or every deviated rollout is "
-                "not finite): no evidence either way"
-            )
-            decided.append("none")
-        else:
-            verdicts.append(Verdict.PASSES)
-            reasons.append("")
-            decided.append(
-                "sampled policy deviations"
-                + (f" + {opts.global_starts} global starts" if opts.global_starts else "")
-            )
+        v, why, by = _agent_verdict(
+            base[i], gain[i], limit[i], glob[i], glob_by[i], evaluated[i], opts.global_starts
+        )
+        verdicts.append(v)
+        reasons.append(why)
+        decided.append(by)
     if opts.global_starts:
         gain = np.where(np.isfinite(glob), np.maximum(gain, glob), gain)
     ok_agent = np.array([v is Verdict.PASSES for v in verdicts], dtype=bool)
