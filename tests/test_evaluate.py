@@ -164,6 +164,24 @@ def runs(tmp_path_factory):
     return out
 
 
+def test_runs_trained_with_another_loss_are_their_own_row(runs, tmp_path):
+    data = synthetic_dataset()
+    cfg = TrainConfig(
+        model=ModelConfig(kind="sc", **TINY),
+        epochs=1,
+        batch_size=4,
+        lr=1e-3,
+        seed=0,
+        imitation_reduction="sum",
+    )
+    train(data, tmp_path / "sc_sum", cfg, progress=False)
+    rep = evaluate([runs["sc0"], runs["sc1"], tmp_path / "sc_sum"], data, "test", cv=False)
+    assert [(g, len(rs)) for g, rs in rep.groups()] == [
+        ("V-LSTM + SC", 2),
+        ("V-LSTM + SC (imitation: sum)", 1),
+    ]
+
+
 def test_evaluate_runs_of_every_kind(runs, tmp_path):
     data = synthetic_dataset()
     rep = evaluate(list(runs.values()), data, "test", cv=True)
