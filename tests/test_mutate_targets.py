@@ -1,8 +1,8 @@
 """The mutation run's map of modules to tests names files that exist.
 
 A module split in two leaves its moved code outside the run unless the new module is
-mapped too; these checks fail on a renamed or removed file and on a split module that the
-map lost.
+mapped too; these checks fail on a renamed or removed file and when one of the splits
+listed below loses a part from the map (a new split must be added to that list).
 """
 
 from __future__ import annotations
